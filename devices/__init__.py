@@ -1,0 +1,1 @@
+"""Serial device drivers, emulators, raw recording and replay. Never imports ``fgslam``."""

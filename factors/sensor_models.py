@@ -1,0 +1,74 @@
+"""Measurement covariance models (DESIGN 3.2-3.5): sonar error model, laser range error
+parameters and the laser's time-registration inflation. Units: m, rad, s."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+# Which components of each measurement vector are angles (True) or lengths (False).
+LINE_ANGULAR = (True, False)  # (alpha, d)
+CORNER_ANGULAR = (True, False, True)  # (phi_c, r_c, gamma)
+POINT_ANGULAR = (True, False)  # (phi, r)
+
+
+@dataclass(frozen=True)
+class SonarErrorModel:
+    """Paper II-B: white noise on the bearing (sigma_bearing, rad) and on the speed of sound
+    (relative sigma_sound_rel, so sigma_r = sigma_sound_rel * r)."""
+
+    sigma_bearing: float = math.radians(2.0)
+    sigma_sound_rel: float = 0.02
+
+    def covariance(self, r: float) -> NDArray[np.float64]:
+        """2x2 covariance of a sonar (bearing, range) at range r (m), and likewise of the
+        (alpha, d) line measurement of a plane seen at its normal point."""
+        if not math.isfinite(r) or r < 0:
+            raise ValueError(f"sonar range must be finite and >= 0, got {r!r}")
+        return np.diag([self.sigma_bearing**2, (self.sigma_sound_rel * r) ** 2])
+
+    def plane_to_line(
+        self, bearing: float, r: float
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """A sonar plane echo as a line measurement (alpha, d) = (bearing, r), its covariance."""
+        return np.array([bearing, r]), self.covariance(r)
+
+    def point(self, bearing: float, r: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """A sonar corner or edge echo as a point measurement (phi, r), its covariance."""
+        return np.array([bearing, r]), self.covariance(r)
+
+
+@dataclass(frozen=True)
+class LaserRangeModel:
+    """Laser range errors: random sigma (m) and the systematic estimate offset + per_metre*r,
+    which the line and corner fits propagate (DESIGN 3.2)."""
+
+    sigma_range: float = 0.02
+    systematic_offset: float = 0.01
+    systematic_per_metre: float = 0.002
+
+    def systematic(self, ranges: ArrayLike) -> NDArray[np.float64]:
+        """Estimated systematic range error (m) at each range (m)."""
+        return self.systematic_offset + self.systematic_per_metre * np.asarray(ranges, float)
+
+
+def time_registration_inflation(
+    covariance: ArrayLike,
+    angular: Sequence[bool],
+    speed: float,
+    turn_rate: float,
+    sigma_t: float,
+) -> NDArray[np.float64]:
+    """DESIGN 3.4: add (v sigma_t)^2 to the positional and (omega sigma_t)^2 to the angular
+    diagonal terms of a laser feature's covariance; v in m/s, omega in rad/s, sigma_t in s."""
+    C = np.array(covariance, dtype=float)
+    if C.shape != (len(angular), len(angular)):
+        raise ValueError(f"covariance shape {C.shape} does not match {len(angular)} components")
+    if not all(math.isfinite(v) for v in (speed, turn_rate, sigma_t)) or sigma_t < 0:
+        raise ValueError("speed, turn rate and sigma_t must be finite, sigma_t >= 0")
+    add = np.where(angular, (turn_rate * sigma_t) ** 2, (speed * sigma_t) ** 2)
+    return C + np.diag(add)

@@ -1,0 +1,223 @@
+"""Analytic Jacobians of every measurement model and factor against numerical ones."""
+
+from __future__ import annotations
+
+import math
+
+import gtsam
+import numpy as np
+import pytest
+from conftest import factor_analytic_jacobians, factor_numeric_jacobians, numeric_jacobian
+
+from factors.corner import (
+    corner_bearing_range_factor,
+    corner_factor,
+    corner_residual,
+    corner_to_world,
+    predict_corner,
+)
+from factors.geometry import wrap_angle
+from factors.line import line_factor, line_residual, line_to_world, normalize_line, predict_line
+from factors.point import point_factor, point_residual, point_to_world, predict_point
+
+N_CONFIGS = 200
+UNIT2 = gtsam.noiseModel.Unit.Create(2)
+UNIT3 = gtsam.noiseModel.Unit.Create(3)
+
+
+def random_pose(rng):
+    return np.array([rng.uniform(-20, 20), rng.uniform(-20, 20), rng.uniform(-math.pi, math.pi)])
+
+
+def random_mount(rng):
+    if rng.random() < 0.2:
+        return (0.0, 0.0, 0.0)
+    return (rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3), rng.uniform(-math.pi, math.pi))
+
+
+def wrapped_diff(a, b, angular):
+    d = np.asarray(a, float) - np.asarray(b, float)
+    return np.array([wrap_angle(v) if ang else v for v, ang in zip(d, angular, strict=True)])
+
+
+def check_factor(factor, values):
+    analytic = factor_analytic_jacobians(factor, values)
+    numeric = factor_numeric_jacobians(factor, values)
+    for A, N in zip(analytic, numeric, strict=True):
+        np.testing.assert_allclose(A, N, atol=1e-5, rtol=1e-5)
+
+
+# ---------------------------------------------------------------- lines
+
+
+def line_case(rng, i):
+    """Random pose, mount and world line; every 4th has alpha_w near +-pi, every 4th+1 a line
+    passing close to the sensor (d near 0, both sides of the flip)."""
+    pose, mount = random_pose(rng), random_mount(rng)
+    if i % 4 == 0:
+        aw = math.pi - rng.uniform(0, 1e-3) if i % 8 == 0 else -math.pi + rng.uniform(0, 1e-3)
+    else:
+        aw = rng.uniform(-math.pi, math.pi)
+    # sensor position in world
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    xs = pose[0] + c * mount[0] - s * mount[1]
+    ys = pose[1] + s * mount[0] + c * mount[1]
+    through_sensor = xs * math.cos(aw) + ys * math.sin(aw)
+    if i % 4 == 1:
+        dw = through_sensor + rng.uniform(-0.02, 0.02)  # sensor within 2 cm of the line
+    else:
+        dw = through_sensor + rng.choice([-1, 1]) * rng.uniform(0.3, 8.0)
+    aw, dw = normalize_line(aw, dw)
+    return pose, mount, np.array([aw, dw])
+
+
+@pytest.mark.parametrize("flip", [False, True])
+def test_line_factor_jacobians(rng, flip):
+    for i in range(N_CONFIGS):
+        pose, mount, line = line_case(rng, i)
+        zp, _, _ = predict_line(pose, line, mount)
+        meas = np.array(normalize_line(zp[0], zp[1])) + rng.normal(0, [0.01, 0.01])
+        if flip:  # same line, other parametrisation of the measurement
+            meas = np.array([wrap_angle(meas[0] + math.pi), -meas[1]])
+        values = gtsam.Values()
+        values.insert(0, gtsam.Pose2(*pose))
+        values.insert(1, line)
+        f = line_factor(0, 1, meas, UNIT2, mount)
+        e = f.unwhitenedError(values)
+        assert np.all(np.abs(e) < 0.1), (e, pose, line, meas)  # residual small on both forms
+        check_factor(f, values)
+
+
+def test_line_world_jacobians(rng):
+    """Jacobians of the plain functions (what the EKF uses) w.r.t. world coordinates."""
+    for i in range(N_CONFIGS):
+        pose, mount, line = line_case(rng, i)
+        meas = np.array([rng.uniform(-math.pi, math.pi), rng.uniform(0.1, 8)])
+        e, H_x, H_l = line_residual(pose, line, meas, mount)
+        Nx = numeric_jacobian(lambda p: line_residual(p, line, meas, mount)[0], pose)
+        Nl = numeric_jacobian(lambda l_: line_residual(pose, l_, meas, mount)[0], line)
+        if abs(abs(e[0]) - math.pi / 2) < 1e-3:
+            continue  # the parametrisation switch itself is not differentiable
+        np.testing.assert_allclose(H_x, Nx, atol=1e-5)
+        np.testing.assert_allclose(H_l, Nl, atol=1e-5)
+        w, Hwx, Hwz = line_to_world(pose, meas, mount)
+        if abs(w[1]) < 1e-4 or abs(abs(w[0]) - math.pi) < 1e-4:
+            continue  # at the d = 0 flip or the angle wrap the inverse is not differentiable
+        Nwx = numeric_jacobian(lambda p: line_to_world(p, meas, mount)[0], pose)
+        Nwz = numeric_jacobian(lambda m: line_to_world(pose, m, mount)[0], meas)
+        np.testing.assert_allclose(Hwx, Nwx, atol=1e-5)
+        np.testing.assert_allclose(Hwz, Nwz, atol=1e-5)
+        # the inverse is exact: predicting the world line gives back the measurement
+        e_back, _, _ = line_residual(pose, w, meas, mount)
+        np.testing.assert_allclose(e_back, 0.0, atol=1e-9)
+
+
+def test_line_residual_same_for_both_parametrisations(rng):
+    for i in range(N_CONFIGS):
+        pose, mount, line = line_case(rng, i)
+        meas = np.array([rng.uniform(-math.pi, math.pi), rng.uniform(0.0, 8)])
+        other = np.array([line[0] + math.pi, -line[1]])
+        e1 = line_residual(pose, line, meas, mount)[0]
+        e2 = line_residual(pose, other, meas, mount)[0]
+        np.testing.assert_allclose(e1, e2, atol=1e-9)
+
+
+def test_line_prediction_geometry():
+    """A wall x = 5 seen from (1, 0) facing +y through a laser mounted 0.5 m ahead."""
+    e, _, _ = line_residual((1.0, 0.0, math.pi / 2), (0.0, 5.0), (0.0, 0.0), (0.5, 0.0, 0.0))
+    # sensor at (1, 0.5) heading +y: wall normal is at -90 deg, distance 4
+    np.testing.assert_allclose(e, [-math.pi / 2, 4.0], atol=1e-12)
+
+
+# ---------------------------------------------------------------- corners
+
+
+def corner_case(rng):
+    pose, mount = random_pose(rng), random_mount(rng)
+    rel = rng.uniform(0.2, 8.0)
+    ang = rng.uniform(-math.pi, math.pi)
+    corner = np.array(
+        [pose[0] + rel * math.cos(ang), pose[1] + rel * math.sin(ang), rng.uniform(-4, 4)]
+    )
+    corner[2] = wrap_angle(corner[2])
+    if rng.random() < 0.25:  # bisector or bearing right at the wrap
+        corner[2] = math.pi - 1e-4
+    return pose, mount, corner
+
+
+def test_corner_factor_jacobians(rng):
+    for _ in range(N_CONFIGS):
+        pose, mount, corner = corner_case(rng)
+        z, _, _ = predict_corner(pose, corner, mount)
+        meas = z + rng.normal(0, [0.01, 0.01, 0.01])
+        values = gtsam.Values()
+        values.insert(0, gtsam.Pose2(*pose))
+        values.insert(1, gtsam.Pose2(*corner))
+        check_factor(corner_factor(0, 1, meas, UNIT3, mount), values)
+        check_factor(corner_bearing_range_factor(0, 1, meas[:2], UNIT2, mount), values)
+
+
+def test_corner_world_jacobians(rng):
+    for _ in range(N_CONFIGS):
+        pose, mount, corner = corner_case(rng)
+        meas = predict_corner(pose, corner, mount)[0] + rng.normal(0, 0.01, 3)
+        _, H_x, H_c = corner_residual(pose, corner, meas, mount)
+        Nx = numeric_jacobian(lambda p: corner_residual(p, corner, meas, mount)[0], pose)
+        Nc = numeric_jacobian(lambda c: corner_residual(pose, c, meas, mount)[0], corner)
+        np.testing.assert_allclose(H_x, Nx, atol=1e-5)
+        np.testing.assert_allclose(H_c, Nc, atol=1e-5)
+        w, Hwx, Hwz = corner_to_world(pose, meas, mount)
+        ang = (False, False, True)
+        Nwx = numeric_jacobian(
+            lambda p: wrapped_diff(corner_to_world(p, meas, mount)[0], w, ang), pose
+        )
+        Nwz = numeric_jacobian(
+            lambda m: wrapped_diff(corner_to_world(pose, m, mount)[0], w, ang), meas
+        )
+        np.testing.assert_allclose(Hwx, Nwx, atol=1e-5)
+        np.testing.assert_allclose(Hwz, Nwz, atol=1e-5)
+        np.testing.assert_allclose(corner_residual(pose, w, meas, mount)[0], 0.0, atol=1e-9)
+
+
+def test_corner_prediction_geometry():
+    # robot at origin facing +x, corner vertex at (3, 4) whose bisector points to -x (world)
+    e, _, _ = corner_residual((0, 0, 0), (3.0, 4.0, math.pi), (0, 0, 0))
+    np.testing.assert_allclose(e, [math.atan2(4, 3), 5.0, math.pi], atol=1e-12)
+
+
+# ---------------------------------------------------------------- points
+
+
+def test_point_world_jacobians(rng):
+    for _ in range(N_CONFIGS):
+        pose, mount, corner = corner_case(rng)
+        point = corner[:2]
+        meas = predict_point(pose, point, mount)[0] + rng.normal(0, 0.01, 2)
+        _, H_x, H_p = point_residual(pose, point, meas, mount)
+        Nx = numeric_jacobian(lambda p: point_residual(p, point, meas, mount)[0], pose)
+        Np = numeric_jacobian(lambda q: point_residual(pose, q, meas, mount)[0], point)
+        np.testing.assert_allclose(H_x, Nx, atol=1e-5)
+        np.testing.assert_allclose(H_p, Np, atol=1e-5)
+        w, Hwx, Hwz = point_to_world(pose, meas, mount)
+        np.testing.assert_allclose(
+            Hwx, numeric_jacobian(lambda p: point_to_world(p, meas, mount)[0], pose), atol=1e-5
+        )
+        np.testing.assert_allclose(
+            Hwz, numeric_jacobian(lambda m: point_to_world(pose, m, mount)[0], meas), atol=1e-5
+        )
+        np.testing.assert_allclose(point_residual(pose, w, meas, mount)[0], 0.0, atol=1e-9)
+
+
+def test_point_factor_matches_model(rng):
+    """The built-in factor with the mount handled gives zero error at the truth and the same
+    error as the plain model (to first order) near it; its Jacobians are checked too."""
+    for _ in range(N_CONFIGS):
+        pose, mount, corner = corner_case(rng)
+        point = corner[:2]
+        z = predict_point(pose, point, mount)[0]
+        values = gtsam.Values()
+        values.insert(0, gtsam.Pose2(*pose))
+        values.insert(1, point)
+        f = point_factor(0, 1, z, np.eye(2), mount)
+        np.testing.assert_allclose(f.unwhitenedError(values), 0.0, atol=1e-9)
+        check_factor(point_factor(0, 1, z + rng.normal(0, 0.01, 2), np.eye(2), mount), values)
