@@ -13,13 +13,48 @@ world (cx, cy, c_theta): what the EKF uses. The factors convert both to GTSAM's 
 from __future__ import annotations
 
 import math
+from math import atan2, cos, remainder, sin, sqrt
 
 import gtsam
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from factors.geometry import bearing_range, sensor_pose, to_body_jacobian, wrap_angle
+from factors.geometry import TWO_PI, sensor_pose, wrap_angle
 from factors.line import IDENTITY_MOUNT, Mount
+
+
+def _corner_terms(
+    x: float, y: float, th: float, cx: float, cy: float, ct: float, mount: Mount
+) -> tuple[float, float, float, float, float, float, float, float]:
+    """Scalar core shared by every user of the model (lean: the factor callbacks call it).
+
+    Returns (phi, r, gamma, a, b, u, v, w): the prediction (phi, gamma unwrapped) and the
+    world Jacobians H_x = [[a, b, -1 - w], [-u, -v, ...]] written out in ``_corner_jacobians``.
+    """
+    mx, my, mth = mount
+    c, s = cos(th), sin(th)
+    ox, oy = c * mx - s * my, s * mx + c * my
+    dx, dy = cx - x - ox, cy - y - oy
+    ths = th + mth
+    r2 = dx * dx + dy * dy
+    if r2 < 1e-18:
+        r2 = 1e-18
+    r = sqrt(r2)
+    return atan2(dy, dx) - ths, r, ct - ths, dx, dy, r2, ox, oy
+
+
+def _corner_jacobians(
+    dx: float, dy: float, r2: float, r: float, ox: float, oy: float
+) -> tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...], tuple[float, ...]]:
+    """World Jacobian rows of (phi, r) w.r.t. the robot's (x, y, th) and the vertex (cx, cy)."""
+    px, py = -dy / r2, dx / r2  # d(phi)/d(cx, cy)
+    qx, qy = dx / r, dy / r  # d(r)/d(cx, cy)
+    return (
+        (-px, -py, -1.0 + px * oy - py * ox),
+        (-qx, -qy, qx * oy - qy * ox),
+        (px, py),
+        (qx, qy),
+    )
 
 
 def predict_corner(
@@ -27,18 +62,14 @@ def predict_corner(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """Predicted (phi_c, r_c, gamma) in the sensor frame (angles wrapped), with Jacobians
     w.r.t. the robot's world pose (3x3) and the corner's world (cx, cy, c_theta) (3x3)."""
-    x, y, th = pose
-    cx, cy, ct = corner
-    xs, ys, ths, Js = sensor_pose(x, y, th, mount)
-    phi, r, H_s2, H_p = bearing_range(xs, ys, ths, cx, cy)
-    z = np.array([phi, r, wrap_angle(ct - ths)])
-    H_s = np.zeros((3, 3))
-    H_s[:2] = H_s2
-    H_s[2, 2] = -1.0
-    H_c = np.zeros((3, 3))
-    H_c[:2, :2] = H_p
-    H_c[2, 2] = 1.0
-    return z, H_s @ Js, H_c
+    x, y, th = (float(v) for v in pose)
+    phi, r, gamma, dx, dy, r2, ox, oy = _corner_terms(
+        x, y, th, float(corner[0]), float(corner[1]), float(corner[2]), mount
+    )
+    hp, hr, cp, cr = _corner_jacobians(dx, dy, r2, r, ox, oy)
+    H_x = np.array([hp, hr, (0.0, 0.0, -1.0)])
+    H_c = np.array([(*cp, 0.0), (*cr, 0.0), (0.0, 0.0, 1.0)])
+    return np.array([wrap_angle(phi), r, wrap_angle(gamma)]), H_x, H_c
 
 
 def corner_residual(
@@ -77,20 +108,7 @@ def corner_factor(
 ) -> gtsam.CustomFactor:
     """Factor between a robot ``Pose2`` and a corner ``Pose2`` for a measured
     (phi_c, r_c, gamma) with a 3x3 noise model (full covariance allowed)."""
-    meas = tuple(float(v) for v in measured)
-    mount = tuple(float(v) for v in mount)
-
-    def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
-        p = values.atPose2(pose_key)
-        c = values.atPose2(corner_key)
-        th, ct = p.theta(), c.theta()
-        e, H_x, H_c = corner_residual((p.x(), p.y(), th), (c.x(), c.y(), ct), meas, mount)
-        if H is not None:
-            H[0] = to_body_jacobian(H_x, th)
-            H[1] = to_body_jacobian(H_c, ct)
-        return e
-
-    return gtsam.CustomFactor(noise, [pose_key, corner_key], error)
+    return _make_corner_factor(pose_key, corner_key, measured, noise, mount, 3)
 
 
 def corner_bearing_range_factor(
@@ -102,20 +120,45 @@ def corner_bearing_range_factor(
 ) -> gtsam.CustomFactor:
     """Factor between a robot ``Pose2`` and a corner ``Pose2`` for a sonar corner: measured
     (phi_c, r_c) only, 2x2 noise model; the corner's orientation is left unconstrained."""
-    meas = (float(measured[0]), float(measured[1]))
-    mount = tuple(float(v) for v in mount)
+    return _make_corner_factor(pose_key, corner_key, measured, noise, mount, 2)
+
+
+def _make_corner_factor(
+    pose_key: int,
+    corner_key: int,
+    measured: ArrayLike,
+    noise: gtsam.noiseModel.Base,
+    mount: Mount,
+    dim: int,
+) -> gtsam.CustomFactor:
+    pm, rm = float(measured[0]), float(measured[1])
+    gm = float(measured[2]) if dim == 3 else 0.0
+    mount = (float(mount[0]), float(mount[1]), float(mount[2]))
+    # Per-factor Jacobian buffers (GTSAM copies on assignment); the gamma rows are constant.
+    Hx = np.zeros((dim, 3))
+    Hc = np.zeros((dim, 3))
+    if dim == 3:
+        Hx[2, 2] = -1.0
+        Hc[2, 2] = 1.0
+    array = np.array
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
         p = values.atPose2(pose_key)
-        c = values.atPose2(corner_key)
-        th, ct = p.theta(), c.theta()
-        xs, ys, ths, Js = sensor_pose(p.x(), p.y(), th, mount)
-        phi, r, H_s, H_p = bearing_range(xs, ys, ths, c.x(), c.y())
-        if H is not None:
-            H[0] = to_body_jacobian(H_s @ Js, th)
-            H_c = np.zeros((2, 3))
-            H_c[:, :2] = H_p
-            H[1] = to_body_jacobian(H_c, ct)
-        return np.array([wrap_angle(phi - meas[0]), r - meas[1]])
+        q = values.atPose2(corner_key)
+        th, ct = p.theta(), q.theta()
+        phi, r, gamma, dx, dy, r2, ox, oy = _corner_terms(p.x(), p.y(), th, q.x(), q.y(), ct, mount)
+        if H is not None:  # _corner_jacobians inlined: this callback is the hot path
+            px, py, qx, qy = -dy / r2, dx / r2, dx / r, dy / r
+            c, s = cos(th), sin(th)  # world -> body columns of the robot pose
+            Hx[0, 0], Hx[0, 1], Hx[0, 2] = -px * c - py * s, px * s - py * c, px * oy - py * ox - 1
+            Hx[1, 0], Hx[1, 1], Hx[1, 2] = -qx * c - qy * s, qx * s - qy * c, qx * oy - qy * ox
+            c, s = cos(ct), sin(ct)  # and of the corner pose
+            Hc[0, 0], Hc[0, 1] = px * c + py * s, py * c - px * s
+            Hc[1, 0], Hc[1, 1] = qx * c + qy * s, qy * c - qx * s
+            H[0] = Hx
+            H[1] = Hc
+        if dim == 3:
+            return array((remainder(phi - pm, TWO_PI), r - rm, remainder(gamma - gm, TWO_PI)))
+        return array((remainder(phi - pm, TWO_PI), r - rm))
 
     return gtsam.CustomFactor(noise, [pose_key, corner_key], error)

@@ -13,38 +13,72 @@ Jacobians of the plain functions are w.r.t. the robot's world (x, y, th) and the
 
 from __future__ import annotations
 
-import math
+from math import cos, pi, remainder, sin
 
 import gtsam
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from factors.geometry import sensor_pose, to_body_jacobian, wrap_angle
+from factors.geometry import TWO_PI, sensor_pose, wrap_angle
 
 Mount = tuple[float, float, float]
 IDENTITY_MOUNT: Mount = (0.0, 0.0, 0.0)
+HALF_PI = 0.5 * pi
 
 
 def normalize_line(alpha: float, d: float) -> tuple[float, float]:
     """The (alpha, d) with d >= 0 and alpha in (-pi, pi] for the same line."""
     if d < 0:
-        return wrap_angle(alpha + math.pi), -d
+        return wrap_angle(alpha + pi), -d
     return wrap_angle(alpha), d
+
+
+def _line_terms(
+    x: float, y: float, th: float, aw: float, dw: float, am: float, dm: float, mount: Mount
+) -> tuple[float, float, float, float, float, float, float]:
+    """Scalar core shared by every user of the model (lean: the factor callback calls it).
+
+    Returns (e_alpha, e_d, g0, g1, g2, q, sg): the residual, and the world Jacobians
+    H_x = [[0, 0, -1], [g0, g1, g2]] and H_l = [[1, 0], [q, sg]].
+    """
+    mx, my, mth = mount
+    c, s = cos(th), sin(th)
+    ox, oy = c * mx - s * my, s * mx + c * my
+    xs, ys = x + ox, y + oy
+    ca, sa = cos(aw), sin(aw)
+    d = dw - xs * ca - ys * sa
+    e0 = remainder(aw - th - mth - am, TWO_PI)
+    sg = 1.0
+    if abs(e0) > HALF_PI:  # use the (alpha + pi, -d) form of the prediction
+        e0 = remainder(e0 + pi, TWO_PI)
+        sg = -1.0
+    return (
+        e0,
+        sg * d - dm,
+        -sg * ca,
+        -sg * sa,
+        sg * (ca * oy - sa * ox),
+        sg * (xs * sa - ys * ca),
+        sg,
+    )
 
 
 def predict_line(
     pose: ArrayLike, line: ArrayLike, mount: Mount = IDENTITY_MOUNT
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """Predicted (alpha, d) in the sensor frame, not normalised, with the Jacobians w.r.t.
-    the robot's world (x, y, th) (2x3) and the world line (alpha_w, d_w) (2x2)."""
-    x, y, th = pose
-    aw, dw = line
-    xs, ys, ths, Js = sensor_pose(x, y, th, mount)
-    c, s = math.cos(aw), math.sin(aw)
-    z = np.array([aw - ths, dw - xs * c - ys * s])
-    H_s = np.array([[0.0, 0.0, -1.0], [-c, -s, 0.0]])
-    H_l = np.array([[1.0, 0.0], [xs * s - ys * c, 1.0]])
-    return z, H_s @ Js, H_l
+    """Predicted (alpha, d) in the sensor frame, not normalised (alpha = alpha_w - ths may
+    leave (-pi, pi]), with the Jacobians w.r.t. the robot's world (x, y, th) (2x3) and the
+    world line (alpha_w, d_w) (2x2)."""
+    x, y, th = (float(v) for v in pose)
+    aw, dw = float(line[0]), float(line[1])
+    # measuring against the prediction's own angle keeps the (alpha, d) form
+    a = aw - th - mount[2]
+    _, e1, g0, g1, g2, q, _ = _line_terms(x, y, th, aw, dw, a, 0.0, mount)
+    return (
+        np.array([a, e1]),
+        np.array([[0.0, 0.0, -1.0], [g0, g1, g2]]),
+        np.array([[1.0, 0.0], [q, 1.0]]),
+    )
 
 
 def line_residual(
@@ -52,14 +86,15 @@ def line_residual(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """Residual prediction - measurement [angle wrapped, distance] and its Jacobians w.r.t.
     the robot's world pose (2x3) and the world line (2x2). The EKF innovation is its negative."""
-    z, H_x, H_l = predict_line(pose, line, mount)
-    e_a = wrap_angle(z[0] - measured[0])
-    if abs(e_a) > 0.5 * math.pi:  # use the (alpha + pi, -d) form of the prediction
-        e_a = wrap_angle(e_a + math.pi)
-        z[1] = -z[1]
-        H_x[1] *= -1.0
-        H_l[1] *= -1.0
-    return np.array([e_a, z[1] - measured[1]]), H_x, H_l
+    x, y, th = (float(v) for v in pose)
+    e0, e1, g0, g1, g2, q, sg = _line_terms(
+        x, y, th, float(line[0]), float(line[1]), float(measured[0]), float(measured[1]), mount
+    )
+    return (
+        np.array([e0, e1]),
+        np.array([[0.0, 0.0, -1.0], [g0, g1, g2]]),
+        np.array([[1.0, 0.0], [q, sg]]),
+    )
 
 
 def line_to_world(
@@ -71,7 +106,7 @@ def line_to_world(
     a, d = measured
     xs, ys, ths, Js = sensor_pose(x, y, th, mount)
     aw = a + ths
-    c, s = math.cos(aw), math.sin(aw)
+    c, s = cos(aw), sin(aw)
     dw = d + xs * c + ys * s
     t = -xs * s + ys * c  # d(dw)/d(aw)
     H_s = np.array([[0.0, 0.0, 1.0], [c, s, t]])
@@ -90,17 +125,30 @@ def line_factor(
     mount: Mount = IDENTITY_MOUNT,
 ) -> gtsam.CustomFactor:
     """A factor between a robot ``Pose2`` and a world line ``Vector2`` (alpha_w, d_w) for a
-    sensor-frame line measurement (alpha, d) with the given noise model."""
-    meas = (float(measured[0]), float(measured[1]))
-    mount = tuple(float(v) for v in mount)
+    sensor-frame line measurement (alpha, d) with the given noise model. The pose Jacobian is
+    w.r.t. GTSAM's body tangent: world columns rotated by the robot's heading."""
+    am, dm = float(measured[0]), float(measured[1])
+    mount = (float(mount[0]), float(mount[1]), float(mount[2]))
+    # Per-factor Jacobian buffers: GTSAM copies them on assignment, and filling a few
+    # entries is far cheaper than building arrays (the callback is the hot path).
+    Hx = np.array([[0.0, 0.0, -1.0], [0.0, 0.0, 0.0]])
+    Hl = np.array([[1.0, 0.0], [0.0, 0.0]])
+    array = np.array
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
         p = values.atPose2(pose_key)
+        aw, dw = values.atVector(line_key).tolist()
         th = p.theta()
-        e, H_x, H_l = line_residual((p.x(), p.y(), th), values.atVector(line_key), meas, mount)
+        e0, e1, g0, g1, g2, q, sg = _line_terms(p.x(), p.y(), th, aw, dw, am, dm, mount)
         if H is not None:
-            H[0] = to_body_jacobian(H_x, th)
-            H[1] = H_l
-        return e
+            c, s = cos(th), sin(th)
+            Hx[1, 0] = g0 * c + g1 * s
+            Hx[1, 1] = g1 * c - g0 * s
+            Hx[1, 2] = g2
+            Hl[1, 0] = q
+            Hl[1, 1] = sg
+            H[0] = Hx
+            H[1] = Hl
+        return array((e0, e1))
 
     return gtsam.CustomFactor(noise, [pose_key, line_key], error)

@@ -19,10 +19,12 @@ from typing import Any
 
 import gtsam
 
+from fgslam.errors import UserError
+
 DEFAULT_CONFIG_NAME = "robot_default.toml"
 
 
-class ConfigError(ValueError):
+class ConfigError(UserError, ValueError):
     """A robot configuration file is invalid; the message is one line for the user."""
 
 

@@ -1,0 +1,94 @@
+"""Robot configuration: defaults, overrides and one-line errors naming file and key."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from fgslam.config import ConfigError, load_config
+
+
+def test_default_is_the_papers_robot():
+    cfg = load_config()
+    assert cfg.odometry.encoder_steps_per_rev == 2000
+    assert cfg.odometry.sample_period == pytest.approx(0.01)
+    assert cfg.laser.n_beams == 361 and cfg.laser.fov_deg == 180
+    assert cfg.laser.range_resolution == pytest.approx(0.05)
+    assert 1 / cfg.laser.scan_period == pytest.approx(4.77, abs=0.01)
+    assert cfg.sonar.sigma_bearing == pytest.approx(math.radians(2))
+    assert cfg.sonar.sigma_sound_rel == pytest.approx(0.02)
+    assert len(cfg.sonar.arrays) == 2
+    b = cfg.laser.bearings
+    assert b[0] == pytest.approx(-math.pi / 2) and b[-1] == pytest.approx(math.pi / 2)
+    assert b[1] - b[0] == pytest.approx(math.radians(0.5))
+
+
+def write(tmp_path, text):
+    p = tmp_path / "robot.toml"
+    p.write_text(text)
+    return p
+
+
+def test_override_subset(tmp_path):
+    p = write(tmp_path, "[odometry]\nwheelbase = 0.5\n[laser.mount]\nx = 0.3\n")
+    cfg = load_config(p)
+    assert cfg.odometry.wheelbase == 0.5
+    assert cfg.laser.mount.x == 0.3 and cfg.laser.mount.yaw_deg == 0.0  # rest kept
+    assert cfg.odometry.k_r == load_config().odometry.k_r
+    assert cfg.source == str(p)
+
+
+def test_integer_accepted_for_float(tmp_path):
+    assert load_config(write(tmp_path, "[laser]\nmax_range = 20\n")).laser.max_range == 20.0
+
+
+def test_sonar_arrays_replaced_whole(tmp_path):
+    text = (
+        '[[sonar.arrays]]\nname = "front"\nmount = { x = 0.2, y = 0.0, yaw_deg = 0.0 }\n'
+        "pan_min_deg = -60.0\npan_max_deg = 60.0\nsweep_period = 8.0\n"
+    )
+    cfg = load_config(write(tmp_path, text))
+    assert [a.name for a in cfg.sonar.arrays] == ["front"]
+
+
+@pytest.mark.parametrize(
+    "text, key, expected",
+    [
+        ("[odometry]\nwheelbse = 0.5\n", "odometry.wheelbse", "unknown key"),
+        ("[lidar]\nx = 1\n", "lidar", "unknown key"),
+        ('[odometry]\nwheelbase = "wide"\n', "odometry.wheelbase", "expected a number"),
+        (
+            "[odometry]\nencoder_steps_per_rev = 2000.5\n",
+            "odometry.encoder_steps_per_rev",
+            "integer",
+        ),
+        ("[odometry]\nwheelbase = -0.4\n", "odometry.wheelbase", "positive"),
+        ("[odometry]\nk_r = -0.1\n", "odometry.k_r", "non-negative"),
+        ("[laser]\nmax_range = nan\n", "laser.max_range", "finite"),
+        ("[laser]\nmount = 3\n", "laser.mount", "expected a table"),
+        ("[laser.mount]\nyaw = 3\n", "laser.mount.yaw", "unknown key"),
+        ('[[sonar.arrays]]\nname = "a"\n', "sonar.arrays.mount", "missing required key"),
+        ("[robot]\nname = 3\n", "robot.name", "expected a string"),
+        ("[odometry]\nk_d = true\n", "odometry.k_d", "expected a number"),
+    ],
+)
+def test_errors_name_file_and_key(tmp_path, text, key, expected):
+    p = write(tmp_path, text)
+    with pytest.raises(ConfigError) as exc:
+        load_config(p)
+    msg = str(exc.value)
+    assert "\n" not in msg
+    assert str(p) in msg and f"'{key}'" in msg and expected in msg
+
+
+def test_bad_toml_and_missing_file(tmp_path):
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        load_config(write(tmp_path, "[odometry\n"))
+    with pytest.raises(ConfigError, match="cannot read"):
+        load_config(tmp_path / "nope.toml")
+
+
+def test_inconsistent_values(tmp_path):
+    with pytest.raises(ConfigError, match="delay_max"):
+        load_config(write(tmp_path, "[laser]\ndelay_min = 0.1\ndelay_max = 0.05\n"))
