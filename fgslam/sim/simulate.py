@@ -111,8 +111,8 @@ def plan_run(
         v += max(-LIN_ACCEL * dt, min(LIN_ACCEL * dt, v_cmd - v))
         w += max(-ANG_ACCEL * dt, min(ANG_ACCEL * dt, w_cmd - w))
         lr, ll = (v + w * D_true / 2) * dt, (v - w * D_true / 2) * dt
-        D_k = D_true * (1 + kd * rng_odo.standard_normal())
-        dth = (lr - ll) / D_k
+        # effective wheelbase noise (eq 5), drawn so that the turn rate stays unbiased
+        dth = (lr - ll) / D_true * (1 + kd * rng_odo.standard_normal())
         ds = 0.5 * (lr + ll)
         x += ds * math.cos(th + dth / 2)
         y += ds * math.sin(th + dth / 2)
