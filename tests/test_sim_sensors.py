@@ -251,3 +251,22 @@ def test_recessed_door_makes_corners_and_flush_door_frames():
     assert len(w2.corners) == 0 and len(w2.mouldings) == 2
     w3 = parse_world({**base, "doors": [{"wall": "a", "at": 4, "width": 1, "open": True}]}, "t")
     assert len(w3.polylines) == 2
+
+
+def test_true_feature_map():
+    room = {
+        "name": "x",
+        "walls": [{"id": "a", "points": [[0, 0], [10, 0], [10, 5], [0, 5]], "closed": True}],
+    }
+    door = {"wall": "a", "at": 4, "width": 1, "recess": 0.2, "side": "right"}
+    fm = parse_world({**room, "doors": [door], "legs": [{"x": 3, "y": 3}]}, "t").feature_map()
+    assert len(fm["lines"]) == 4 + 4  # the room's walls, the door's jambs and plane
+    for line in fm["lines"]:
+        (x1, y1), (x2, y2) = line["endpoints"]
+        assert line["d"] >= 0
+        for x, y in ((x1, y1), (x2, y2)):  # endpoints lie on the line
+            assert x * math.cos(line["alpha"]) + y * math.sin(line["alpha"]) == pytest.approx(
+                line["d"]
+            )
+    assert len(fm["corners"]) == 6
+    assert {(p["x"], p["y"]) for p in fm["points"]} >= {(3.0, 3.0), (4.0, 0.0), (5.0, 0.0)}

@@ -34,6 +34,7 @@ def simulate_to_log(
         "duration": run.duration,
         "distance": round(run.distance, 3),
         "sim_params": dataclasses.asdict(params),
+        "true_map": world.feature_map(),
     }
     with LogWriter(out, cfg, world.name, meta) as log:
         for ev in events(world, cfg, run, params):

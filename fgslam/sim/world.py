@@ -136,6 +136,32 @@ class World:
             d = np.minimum(d, (dl - self.legs[None, :, 2]).min(axis=1))
         return d
 
+    def feature_map(self) -> dict[str, list]:
+        """The true feature map for map-error evaluation (world frame, m, rad).
+
+        ``lines``: every wall segment and glass pane as {alpha, d (d >= 0), endpoints,
+        laser (seen by the laser)}; ``corners``: concave right-angle corners as {x, y, theta}
+        with theta the bisector pointing from the vertex into free space; ``points``: sonar
+        point reflectors (convex vertices, wall ends, mouldings, door frames, legs) as {x, y,
+        radius}.
+        """
+        lines = []
+        for segs, laser in ((self.laser_segments, True), (_segments(self.glass), False)):
+            for x1, y1, x2, y2 in segs:
+                nx, ny = y1 - y2, x2 - x1  # a normal of the segment
+                n = math.hypot(nx, ny)
+                alpha = math.atan2(ny, nx)
+                d = (x1 * nx + y1 * ny) / n
+                if d < 0:
+                    alpha, d = alpha + math.pi, -d
+                alpha = math.remainder(alpha, 2 * math.pi)
+                lines.append(
+                    {"alpha": alpha, "d": d, "endpoints": [[x1, y1], [x2, y2]], "laser": laser}
+                )
+        corners = [{"x": x, "y": y, "theta": t} for x, y, t in self.corners.tolist()]
+        points = [{"x": x, "y": y, "radius": r} for x, y, r in self.edges[:, :3].tolist()]
+        return {"lines": lines, "corners": corners, "points": points}
+
     def bounds(self) -> tuple[float, float, float, float]:
         s = self.sonar_segments
         xs, ys = np.concatenate([s[:, 0], s[:, 2]]), np.concatenate([s[:, 1], s[:, 3]])
