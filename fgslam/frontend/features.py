@@ -1,0 +1,71 @@
+"""What the front end produces: features with covariances, per scan (robot frame, m, rad)."""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass, field
+from enum import StrEnum
+
+import numpy as np
+from numpy.typing import NDArray
+
+from fgslam.events import SonarReading
+
+
+class End(StrEnum):
+    """Why a line segment started or ended (paper III-A). The next segment's start condition
+    is the previous segment's end condition."""
+
+    DISCONTINUITY = "discontinuity"  # a range jump in the scan
+    SPREAD = "spread"  # std of point-to-line distances above the threshold
+    OUTLIERS = "outliers"  # the next 3 points all beyond the range-model threshold
+    MAX_RANGE = "max_range"  # a point beyond the maximum line range (or no return)
+    FIELD_OF_VIEW = "field_of_view"  # the end of the 180 deg scan
+    SONAR = "sonar"  # a sonar cluster with corners or edges close by
+
+    @property
+    def reliable(self) -> bool:
+        """The object really ends here (the map moves its endpoint a big step)."""
+        return self in (End.SONAR, End.DISCONTINUITY)
+
+    @property
+    def informative(self) -> bool:
+        """The end says something about the object's extent (not the field of view)."""
+        return self is not End.FIELD_OF_VIEW
+
+
+@dataclass
+class Feature:
+    """One measured feature in the robot frame at the scan's time.
+
+    kind ``line``: z = (alpha, d), d >= 0; ``corner``: z = (phi_c, r_c, gamma) with gamma the
+    bisector pointing into free space, or (phi_c, r_c) for a sonar-only corner; ``point``:
+    z = (bearing, range). ``cov`` is ordered like z. ``endpoints`` (2, 2) for lines (first
+    and last point projected on the line, in scan order) and corners (the ends of both arms).
+    ``support`` counts laser points and sonar readings; ``sources`` says which sensors
+    measured z ("laser", "sonar" or "fused").
+    """
+
+    kind: str
+    z: NDArray[np.float64]
+    cov: NDArray[np.float64]
+    source: str = "laser"
+    endpoints: NDArray[np.float64] | None = None
+    start: End | None = None
+    end: End | None = None
+    convex: bool = False
+    laser_support: int = 0
+    sonar_support: int = 0
+    sonar_readings: tuple[SonarReading, ...] = field(default=(), repr=False)
+
+
+@dataclass
+class ScanFeatures:
+    """The front end's output for one laser scan (or one sonar-only step) at time ``t``."""
+
+    t: float
+    features: list[Feature]
+    stats: Counter = field(default_factory=Counter)
+
+    def count(self, kind: str) -> int:
+        return sum(f.kind == kind for f in self.features)

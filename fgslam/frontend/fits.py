@@ -1,0 +1,222 @@
+"""Polar line and right-angle corner fits to laser ranges, with covariances (DESIGN 3.2-3.3).
+
+Both minimise the sum of squared *range* residuals over the beams (bearings phi_i, rad, in the
+laser frame; ranges r_i, m) by Gauss-Newton, and give the covariance sigma_r^2 (H^T H)^-1
+plus the paper's worst-case systematic term: each systematic range-error source is propagated
+through the same regression, the absolute contributions are summed, squared and added to the
+diagonal.
+
+A fit that cannot be trusted raises :class:`FitRejected` with a short reason code, which the
+front end counts in its per-scan statistics; nothing else escapes.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from factors.geometry import wrap_angle
+
+
+class FitRejected(Exception):
+    """A fit was rejected; ``reason`` is a short code for statistics."""
+
+    def __init__(self, reason: str, detail: str = "") -> None:
+        super().__init__(f"{reason}: {detail}" if detail else reason)
+        self.reason = reason
+
+
+@dataclass
+class Fit:
+    """Fitted parameters, their covariance (random only and with systematic errors added),
+    the iterations used, the rms range residual (m), the beams kept, and (on request) the
+    parameter history of every iteration."""
+
+    params: NDArray[np.float64]
+    cov: NDArray[np.float64]
+    cov_random: NDArray[np.float64]
+    iterations: int
+    rms: float
+    used: NDArray[np.bool_]
+    history: list[NDArray[np.float64]] = field(default_factory=list)
+
+
+def _prepare(phi: ArrayLike, r: ArrayLike, min_points: int):
+    phi = np.asarray(phi, dtype=float)
+    r = np.asarray(r, dtype=float)
+    if phi.shape != r.shape or phi.ndim != 1:
+        raise FitRejected("bad_input", "bearings and ranges must be 1-D and of equal length")
+    ok = np.isfinite(phi) & np.isfinite(r) & (r > 0)
+    if ok.sum() < min_points:
+        raise FitRejected("too_few_points", f"{int(ok.sum())} valid points")
+    return phi, r, ok
+
+
+def _covariances(H, sigma_r, systematic, used):
+    """sigma_r^2 (H^T H)^-1, and that plus the systematic worst case on the diagonal."""
+    HtH = H.T @ H
+    cond = np.linalg.cond(HtH)
+    if not np.isfinite(cond) or cond > 1e12:
+        raise FitRejected("ill_conditioned", f"condition number {cond:.3g}")
+    inv = np.linalg.inv(HtH)
+    cov_random = sigma_r**2 * inv
+    sys_sum = np.zeros(H.shape[1])
+    for e in systematic:
+        e = np.broadcast_to(np.asarray(e, dtype=float), used.shape)[used]
+        sys_sum += np.abs(inv @ (H.T @ e))
+    return cov_random + np.diag(sys_sum**2), cov_random
+
+
+# ------------------------------------------------------------------ lines
+
+
+def line_ranges(alpha: float, d: float, phi: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Ranges (m) at bearings phi of the line (alpha, d): r = d / cos(alpha - phi)."""
+    return d / np.cos(alpha - phi)
+
+
+def tls_line(x: NDArray[np.float64], y: NDArray[np.float64]) -> tuple[float, float]:
+    """Total-least-squares (alpha, d >= 0) of Cartesian points."""
+    mx, my = x.mean(), y.mean()
+    sxx, syy, sxy = ((x - mx) ** 2).sum(), ((y - my) ** 2).sum(), ((x - mx) * (y - my)).sum()
+    alpha = 0.5 * math.atan2(-2 * sxy, syy - sxx)
+    d = mx * math.cos(alpha) + my * math.sin(alpha)
+    if d < 0:
+        alpha, d = alpha + math.pi, -d
+    return wrap_angle(alpha), d
+
+
+def fit_line(
+    phi: ArrayLike,
+    r: ArrayLike,
+    sigma_r: float,
+    systematic: Sequence[ArrayLike] = (),
+    max_iter: int = 10,
+) -> Fit:
+    """Fit (alpha, d) to laser points by minimising squared range residuals.
+
+    ``systematic``: per-source systematic range errors (m), each a scalar or one per beam.
+    Raises :class:`FitRejected` (too few points, a line through the sensor, no convergence).
+    """
+    phi, r, ok = _prepare(phi, r, 3)
+    p, rr = phi[ok], r[ok]
+    alpha, d = tls_line(rr * np.cos(p), rr * np.sin(p))
+    if d < 1e-3:
+        raise FitRejected("through_sensor", "the line passes through the sensor")
+    it = 0
+    for it in range(1, max_iter + 1):  # noqa: B007 - 'it' is reported in the result
+        c = np.cos(alpha - p)
+        if np.any(c <= 0.02):
+            raise FitRejected("grazing", "a beam runs (almost) parallel to the line")
+        pred = d / c
+        H = np.column_stack([d * np.sin(alpha - p) / c**2, 1.0 / c])
+        step, *_ = np.linalg.lstsq(H, rr - pred, rcond=None)
+        alpha, d = alpha + step[0], d + step[1]
+        if abs(step[0]) < 1e-8 and abs(step[1]) < 1e-7:  # far below any line's uncertainty
+            break
+    else:
+        raise FitRejected("no_convergence", f"{max_iter} iterations")
+    if d <= 0:
+        raise FitRejected("through_sensor", "the fitted line passes behind the sensor")
+    c = np.cos(alpha - p)
+    H = np.column_stack([d * np.sin(alpha - p) / c**2, 1.0 / c])
+    cov, cov_random = _covariances(H, sigma_r, systematic, ok)
+    rms = float(np.sqrt(np.mean((rr - d / c) ** 2)))
+    return Fit(np.array([wrap_angle(alpha), d]), cov, cov_random, it, rms, ok)
+
+
+# ------------------------------------------------------------------ corners
+
+
+def corner_ranges(
+    b: ArrayLike, phi: NDArray[np.float64], convex: bool = False
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Paper eq 8: ranges at bearings phi of the corner b = (phi_c, r_c, gamma_p), and the
+    Jacobian H (eqs 10-12, with the pi/4 of the erratum and the exact d r_i / d r_c).
+
+    ``gamma_p`` is the paper's bisector angle: the walls' normals are gamma_p +- pi/4 (it
+    points away from the sensor); a convex corner swaps which wall lies on which side.
+    """
+    phi_c, r_c, g = b
+    s = np.sign(phi - phi_c)
+    s[s == 0] = 1.0
+    if convex:
+        s = -s
+    A = g + s * (math.pi / 4)
+    cc, ci = np.cos(A - phi_c), np.cos(A - phi)
+    pred = r_c * cc / ci
+    H = np.column_stack([r_c * np.sin(A - phi_c) / ci, cc / ci, r_c * np.sin(phi_c - phi) / ci**2])
+    return pred, H
+
+
+def fit_corner(
+    phi: ArrayLike,
+    r: ArrayLike,
+    init: ArrayLike,
+    sigma_r: float,
+    systematic: Sequence[ArrayLike] = (),
+    convex: bool = False,
+    max_iter: int = 20,
+    keep_history: bool = False,
+) -> Fit:
+    """Fit a right-angle corner by iterated linear regression (paper eqs 13-19).
+
+    ``init`` = (phi_c, r_c, gamma_p) is the starting guess in the paper's convention. At each
+    iteration beams whose predicted range is negative or more than twice the measured range
+    are dropped. The result's ``params`` are (phi_c, r_c, gamma) in the project's convention:
+    gamma = gamma_p + pi, the bisector pointing from the vertex into free space.
+    Raises :class:`FitRejected` (too few points on a side, divergence, ill-conditioning).
+    """
+    phi, r, ok = _prepare(phi, r, 5)
+    b = np.array(init, dtype=float)
+    history = [b.copy()] if keep_history else []
+
+    def cost(bb: NDArray[np.float64]) -> float:
+        # pruned beams count as a residual of their own range: a capped, continuous cost
+        pr = corner_ranges(bb, phi, convex)[0][ok]
+        res = np.where((pr > 0) & (pr <= 2 * r[ok]), r[ok] - pr, r[ok])
+        return float(np.sum(np.minimum(res * res, r[ok] ** 2)))
+
+    c0 = cost(b)
+    it = 0
+    for it in range(1, max_iter + 1):  # noqa: B007 - 'it' is reported in the result
+        pred, H = corner_ranges(b, phi, convex)
+        used = ok & (pred > 0) & (pred <= 2 * r) & np.isfinite(pred)
+        left, right = used & (phi > b[0]), used & (phi < b[0])
+        if left.sum() < 2 or right.sum() < 2:
+            raise FitRejected("one_sided", "fewer than 2 beams on a side of the vertex")
+        Hu = H[used]
+        step, *_ = np.linalg.lstsq(Hu, (r - pred)[used], rcond=None)
+        # the model is only piecewise smooth (a beam changes wall when the vertex passes it):
+        # halve steps that do not lower the cost, and stop at a kink
+        for _ in range(12):
+            c1 = cost(b + step)
+            if c1 <= c0 or not np.isfinite(c1):
+                break
+            step = step / 2
+        b = b + step
+        if keep_history:
+            history.append(b.copy())
+        if not (np.all(np.isfinite(b)) and b[1] > 0):
+            raise FitRejected("diverged", "corner range went non-positive")
+        try:
+            sd = sigma_r * np.sqrt(np.diag(np.linalg.inv(Hu.T @ Hu)))
+        except np.linalg.LinAlgError:
+            raise FitRejected("ill_conditioned", "singular normal equations") from None
+        if float(np.max(np.abs(step) / np.maximum(sd, 1e-12))) < 1e-3:
+            break
+        c0 = min(c0, c1)
+    else:
+        raise FitRejected("no_convergence", f"{max_iter} iterations")
+    pred, H = corner_ranges(b, phi, convex)
+    used = ok & (pred > 0) & (pred <= 2 * r)
+    if abs(wrap_angle(b[2] - b[0])) > math.pi / 4:
+        raise FitRejected("not_facing", "a wall of the corner faces away from the sensor")
+    cov, cov_random = _covariances(H[used], sigma_r, systematic, used)
+    rms = float(np.sqrt(np.mean((r - pred)[used] ** 2)))
+    params = np.array([wrap_angle(b[0]), b[1], wrap_angle(b[2] + math.pi)])
+    return Fit(params, cov, cov_random, it, rms, used, history)

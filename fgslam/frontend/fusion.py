@@ -1,0 +1,46 @@
+"""Laser-sonar fusion in information form (paper III-B, DESIGN 3.6).
+
+C_f = (C_l^-1 + C_s^-1)^-1, z_f = C_f (C_l^-1 z_l + C_s^-1 z_s), written as the equivalent
+Kalman update so that the sonar may measure only the leading components (corners: range and
+bearing, not orientation; the fused orientation still moves through its correlations).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from factors.geometry import wrap_angle
+
+
+def fuse(
+    z_l: ArrayLike,
+    C_l: ArrayLike,
+    z_s: ArrayLike,
+    C_s: ArrayLike,
+    angular: Sequence[bool],
+    dims: int | None = None,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Fuse laser estimate (z_l, C_l) with a sonar measurement (z_s, C_s) of its first ``dims``
+    components (all by default). ``angular`` flags the angle components of z_s (residuals
+    wrapped). Returns the fused vector and covariance."""
+    z_l = np.asarray(z_l, dtype=float)
+    C_l = np.asarray(C_l, dtype=float)
+    z_s = np.asarray(z_s, dtype=float)
+    C_s = np.asarray(C_s, dtype=float)
+    n = z_l.size
+    m = n if dims is None else dims
+    if z_s.shape != (m,) or C_s.shape != (m, m) or C_l.shape != (n, n):
+        raise ValueError("fusion: inconsistent shapes")
+    H = np.eye(m, n)
+    innov = z_s - z_l[:m]
+    for k, ang in enumerate(angular[:m]):
+        if ang:
+            innov[k] = wrap_angle(innov[k])
+    S = C_l[:m, :m] + C_s
+    K = np.linalg.solve(S, H @ C_l).T  # C_l H^T S^-1 (S and C_l symmetric)
+    z = z_l + K @ innov
+    C = C_l - K @ H @ C_l
+    return z, 0.5 * (C + C.T)

@@ -1,0 +1,473 @@
+"""The front end as a stream processor: events in, per-scan features out (robot frame).
+
+A scan is processed once the sonar readings of the 6 s after it have arrived (or at the end
+of the data), so its features come out with that lag. Modes: ``fused`` (the paper: laser and
+sonar), ``laser`` (no sonar at all) and ``sonar`` (sonar planes as lines, corner/edge
+clusters as points; one output step per laser-scan period, or every ``sonar_step`` s when the
+log has no laser). The same code runs all three, so comparisons use identical processing.
+
+Each sonar reading is used as a measurement (fused into a feature, or a point feature) only by
+the scan nearest to it in time, so that no reading is counted twice; the whole 12 s window
+serves segmentation, clustering, phantom removal and support counts.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter, deque
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from factors.corner import corner_to_world, predict_corner
+from factors.geometry import wrap_angle
+from factors.line import line_residual, line_to_world
+from factors.odometry import OdometryIntegrator, OdometryParams
+from factors.point import point_to_world, predict_point
+from factors.sensor_models import (
+    CORNER_ANGULAR,
+    LINE_ANGULAR,
+    SonarErrorModel,
+    time_registration_inflation,
+)
+from fgslam.config import RobotConfig
+from fgslam.events import Event, LaserScan, OdometryEvent, SonarReading
+from fgslam.frontend.features import End, Feature, ScanFeatures
+from fgslam.frontend.fits import FitRejected, fit_corner, fit_line
+from fgslam.frontend.fusion import fuse
+from fgslam.frontend.segmentation import Segment, SegmentParams, segment_scan
+from fgslam.frontend.sonar import (
+    Cluster,
+    PoseHistory,
+    SonarBuffer,
+    SonarPoints,
+    cluster,
+    mark_invisible,
+    remove_phantoms,
+    to_laser_frame,
+)
+
+MODES = ("fused", "laser", "sonar")
+CHI2_2_99 = 9.21
+CHI2_3_99 = 11.34
+
+
+@dataclass(frozen=True)
+class FrontEndParams:
+    """Thresholds of the front end (m, rad, s)."""
+
+    segment: SegmentParams = field(default_factory=SegmentParams)
+    window: float = 6.0  # sonar readings this long before and after a scan
+    cluster_radius: float = 0.15  # single-linkage distance of sonar clusters
+    visible_dist: float = 0.3  # a cluster farther from every laser point is invisible
+    phantom_margin: float = 0.3  # echoes this far behind a laser surface are phantoms
+    support_dist: float = 0.1  # sonar echoes this close to a segment support it
+    right_angle_tol: float = math.radians(12)  # two lines form a right angle within this
+    corner_gap: float = 0.3  # laser only: line ends this close to the intersection
+    min_cluster: int = 3  # echoes in a sonar-only point cluster
+    sonar_step: float = 0.2  # sonar-only logs without laser: output step (s)
+
+
+class FrontEnd:
+    """Feed events in time order with :meth:`add`; collect :class:`ScanFeatures` from its
+    return value and from :meth:`finish` at the end of the data."""
+
+    def __init__(
+        self, cfg: RobotConfig, mode: str = "fused", params: FrontEndParams | None = None
+    ) -> None:
+        if mode not in MODES:
+            raise ValueError(f"unknown front-end mode {mode!r}; expected one of {MODES}")
+        self.cfg, self.mode = cfg, mode
+        self.p = params or FrontEndParams()
+        o = cfg.odometry
+        self.odo = OdometryIntegrator(OdometryParams(o.wheelbase, o.k_r, o.k_l, o.k_d))
+        self.poses = PoseHistory(keep=4 * self.p.window)
+        self.sonar = SonarBuffer(cfg)
+        self._first_sonar_t: float | None = None
+        self.pending: deque[tuple[LaserScan, float, float]] = deque()
+        self.sonar_model = SonarErrorModel(cfg.sonar.sigma_bearing, cfg.sonar.sigma_sound_rel)
+        self.phi = cfg.laser.bearings
+        m = cfg.laser.mount
+        self.mount = (m.x, m.y, math.radians(m.yaw_deg))
+        self.half_slot = 0.5 * cfg.laser.scan_period
+        self._last_scan_t = -math.inf
+        self._next_sonar_step: float | None = None
+        self._saw_laser = False
+        self.now = -math.inf
+
+    # ------------------------------------------------------------------ stream
+
+    def add(self, ev: Event) -> list[ScanFeatures]:
+        """Consume one event; returns the scans whose window is now complete."""
+        self.now = max(self.now, ev.t)
+        if isinstance(ev, OdometryEvent):
+            o = self.cfg.odometry
+            self.odo.add(
+                ev.t,
+                ev.ticks_right * o.metres_per_tick_right,
+                ev.ticks_left * o.metres_per_tick_left,
+            )
+            self.poses.add(ev.t, self.odo.pose)
+        elif isinstance(ev, LaserScan):
+            self._saw_laser = True
+            if self.poses.last_time == -math.inf:
+                self.poses.add(ev.t, self.odo.pose)
+            v, w = self.odo.velocity
+            self.pending.append((ev, v, w))
+        elif isinstance(ev, SonarReading) and self.mode != "laser":
+            self.sonar.add(ev)
+            if self._first_sonar_t is None:
+                self._first_sonar_t = ev.t
+        return self._ready(final=False)
+
+    def finish(self) -> list[ScanFeatures]:
+        """Process every scan still waiting for its sonar window."""
+        return self._ready(final=True)
+
+    def _ready(self, final: bool) -> list[ScanFeatures]:
+        out = []
+        wait = 0.0 if self.mode == "laser" else self.p.window
+        while self.pending and (final or self.pending[0][0].t + wait <= self.now):
+            scan, v, w = self.pending.popleft()
+            out.append(self.process_scan(scan, v, w))
+        if self.mode == "sonar" and not self._saw_laser:
+            out.extend(self._sonar_only_steps(final))
+        oldest = self.pending[0][0].t if self.pending else self.now
+        if self._next_sonar_step is not None:
+            oldest = min(oldest, self._next_sonar_step)
+        self.sonar.drop_before(oldest - self.p.window - 1.0)
+        return out
+
+    def _sonar_only_steps(self, final: bool) -> list[ScanFeatures]:
+        if self._next_sonar_step is None:
+            if self._first_sonar_t is None:
+                return []
+            self._next_sonar_step = self._first_sonar_t
+        out = []
+        while (final and self._next_sonar_step <= self.now) or (
+            self._next_sonar_step + self.p.window <= self.now
+        ):
+            fake = LaserScan(self._next_sonar_step, np.full(len(self.phi), np.nan))
+            out.append(self.process_scan(fake, *self.odo.velocity))
+            self._next_sonar_step += self.p.sonar_step
+        return out
+
+    # ------------------------------------------------------------------ one scan
+
+    def process_scan(self, scan: LaserScan, v: float, w: float) -> ScanFeatures:
+        """Features of one scan (robot frame); ``v``, ``w`` the robot's speed (m/s) and turn
+        rate (rad/s) at the scan for the time-registration inflation."""
+        stats: Counter = Counter()
+        t = scan.t
+        phi = self.phi
+        r = np.asarray(scan.ranges, dtype=float).copy()
+        bad = ~np.isfinite(r) | (r <= 0)
+        stats["beams_invalid"] = int(bad.sum())
+        r[bad] = np.nan
+        use_laser = self.mode != "sonar"
+        use_sonar = self.mode != "laser"
+        pts, clusters = self._sonar_points(t, phi, r, use_laser, stats) if use_sonar else (None, [])
+        near = dist = None
+        if use_laser and use_sonar:
+            near, dist = self._near_clusters(phi, r, clusters)
+        feats: list[Feature] = []
+        segs: list[Segment] = []
+        if use_laser:
+            segs, rejected = segment_scan(phi, r, self.p.segment, near, dist)
+            stats.update({f"segments_rejected_{k}": v for k, v in rejected.items()})
+            lines = [self._line(s, phi, r, pts, stats) for s in segs]
+            corners = self._corners(segs, lines, phi, r, clusters, pts, stats)
+            for f in [f for f in lines if f is not None] + corners:
+                f.cov = time_registration_inflation(
+                    f.cov,
+                    LINE_ANGULAR if f.kind == "line" else CORNER_ANGULAR,
+                    v,
+                    w,
+                    self.cfg.laser.sigma_time,
+                )
+                feats.append(f)
+        if use_sonar and pts is not None:
+            slot = np.abs(pts.t - t) <= self.half_slot
+            if use_laser:
+                self._fuse(feats, pts, slot, stats)
+                feats.extend(self._points(segs, clusters, pts, slot, stats))
+            else:
+                feats.extend(self._sonar_only(clusters, pts, slot, stats))
+        feats = [self._to_robot(f) for f in feats]
+        for k in ("line", "corner", "point"):
+            stats[f"{k}s"] = sum(f.kind == k for f in feats)
+        return ScanFeatures(t, feats, stats)
+
+    # ------------------------------------------------------------------ sonar
+
+    def _sonar_points(self, t, phi, r, use_laser, stats):
+        pts = to_laser_frame(self.sonar, self.cfg, self.poses, t, self.p.window)
+        stats["sonar_echoes"] = len(pts)
+        if use_laser:
+            pts, n_ph = remove_phantoms(pts, phi, r, self.p.phantom_margin)
+            stats["sonar_phantoms_removed"] = n_ph
+        clusters = cluster(pts, self.p.cluster_radius)
+        if use_laser:
+            ok = np.isfinite(r)
+            mark_invisible(
+                clusters,
+                np.column_stack([r[ok] * np.cos(phi[ok]), r[ok] * np.sin(phi[ok])]),
+                self.p.visible_dist,
+            )
+            stats["sonar_clusters_invisible"] = sum(not c.visible for c in clusters)
+        stats["sonar_clusters"] = len(clusters)
+        return pts, clusters
+
+    def _near_clusters(self, phi, r, clusters: list[Cluster]):
+        near = np.full(len(r), -1)
+        dist = np.full(len(r), np.inf)
+        vis = [i for i, c in enumerate(clusters) if c.visible and c.has_corner_or_edge]
+        ok = np.isfinite(r)
+        if not vis or not ok.any():
+            return near, dist
+        tree = cKDTree(np.array([clusters[i].centre for i in vis]))
+        xy = np.column_stack([r[ok] * np.cos(phi[ok]), r[ok] * np.sin(phi[ok])])
+        d, k = tree.query(xy, distance_upper_bound=self.p.segment.sonar_radius)
+        hit = np.isfinite(d)
+        idx = np.flatnonzero(ok)
+        near[idx[hit]] = np.array(vis)[k[hit]]
+        dist[idx[hit]] = d[hit]
+        return near, dist
+
+    # ------------------------------------------------------------------ laser features
+
+    def _systematic(self, r):
+        las = self.cfg.laser
+        return [np.full(r.shape, las.systematic_offset), las.systematic_per_metre * r]
+
+    def _line(self, seg: Segment, phi, r, pts: SonarPoints | None, stats) -> Feature | None:
+        p, rr = phi[seg.first : seg.last + 1], r[seg.first : seg.last + 1]
+        try:
+            fit = fit_line(p, rr, self.cfg.laser.sigma_range, self._systematic(rr))
+        except FitRejected as exc:
+            stats[f"lines_rejected_{exc.reason}"] += 1
+            return None
+        a, d = fit.params
+        ends = []
+        for k in (0, -1):  # first and last point projected on the line
+            x, y = rr[k] * math.cos(p[k]), rr[k] * math.sin(p[k])
+            off = x * math.cos(a) + y * math.sin(a) - d
+            ends.append((x - off * math.cos(a), y - off * math.sin(a)))
+        f = Feature(
+            "line",
+            fit.params,
+            fit.cov,
+            "laser",
+            np.array(ends),
+            seg.start,
+            seg.end,
+            laser_support=int(fit.used.sum()),
+        )
+        if pts is not None and len(pts):
+            f.sonar_support = int(np.sum(_seg_dist(pts.xy, f.endpoints) < self.p.support_dist))
+        return f
+
+    def _corners(self, segs, lines, phi, r, clusters, pts, stats) -> list[Feature]:
+        out = []
+        for k in range(len(segs) - 1):
+            s1, s2, l1, l2 = segs[k], segs[k + 1], lines[k], lines[k + 1]
+            if l1 is None or l2 is None:
+                continue
+            if self.mode == "laser":
+                if s1.end not in (End.OUTLIERS, End.SPREAD):
+                    continue
+            elif not (
+                s1.end is End.SONAR
+                and s1.end_cluster is not None
+                and clusters[s1.end_cluster].counts[1] > 0
+            ):
+                continue
+            a1, d1 = l1.z
+            a2, d2 = l2.z
+            if abs(abs(wrap_angle(a1 - a2)) - math.pi / 2) > self.p.right_angle_tol:
+                continue
+            stats["corners_tried"] += 1
+            det = math.sin(a2 - a1)
+            vx = (d1 * math.sin(a2) - d2 * math.sin(a1)) / det
+            vy = (d2 * math.cos(a1) - d1 * math.cos(a2)) / det
+            if self.mode == "laser":
+                gap = min(
+                    np.hypot(*(l1.endpoints[1] - (vx, vy))), np.hypot(*(l2.endpoints[0] - (vx, vy)))
+                )
+                if gap > self.p.corner_gap:
+                    stats["corners_rejected_gap"] += 1
+                    continue
+            phi_c, r_c = math.atan2(vy, vx), math.hypot(vx, vy)
+            # paper gamma: mean of the two normals; l2 lies at larger bearings
+            g = a1 + 0.5 * wrap_angle(a2 - a1)
+            if abs(wrap_angle(g - phi_c)) > math.pi / 2:
+                g += math.pi
+            convex = wrap_angle(a2 - g) < 0
+            sl = slice(s1.first, s2.last + 1)
+            try:
+                fit = fit_corner(
+                    phi[sl],
+                    r[sl],
+                    (phi_c, r_c, g),
+                    self.cfg.laser.sigma_range,
+                    self._systematic(r[sl]),
+                    convex=convex,
+                )
+            except FitRejected as exc:
+                stats[f"corners_rejected_{exc.reason}"] += 1
+                continue
+            f = Feature(
+                "corner",
+                fit.params,
+                fit.cov,
+                "laser",
+                np.array([l1.endpoints[0], l2.endpoints[1]]),
+                convex=convex,
+                laser_support=int(fit.used.sum()),
+            )
+            if pts is not None and len(pts):
+                vx, vy = (
+                    fit.params[1] * math.cos(fit.params[0]),
+                    fit.params[1] * math.sin(fit.params[0]),
+                )
+                f.sonar_support = int(
+                    np.sum(
+                        (pts.kind == 1)
+                        & (
+                            np.hypot(pts.xy[:, 0] - vx, pts.xy[:, 1] - vy)
+                            < 2 * self.p.cluster_radius
+                        )
+                    )
+                )
+            out.append(f)
+        return out
+
+    # ------------------------------------------------------------------ sonar features
+
+    def _plane_cov(self, pts: SonarPoints, i: int) -> NDArray[np.float64]:
+        tx, ty, _ = pts.sensor[i]
+        a = pts.line[i, 0]
+        C = self.sonar_model.covariance(pts.r[i])
+        J = np.array([[1.0, 0.0], [-tx * math.sin(a) + ty * math.cos(a), 1.0]])
+        return J @ C @ J.T
+
+    def _point_cov(self, pts: SonarPoints, i: int) -> NDArray[np.float64]:
+        _, _, tth = pts.sensor[i]
+        a, rr = tth + pts.bearing[i], pts.r[i]
+        J = np.array([[-rr * math.sin(a), math.cos(a)], [rr * math.cos(a), math.sin(a)]])
+        return J @ self.sonar_model.covariance(rr) @ J.T
+
+    def _fuse(self, feats: list[Feature], pts: SonarPoints, slot, stats) -> None:
+        planes = np.flatnonzero(slot & (pts.kind == 0))
+        corners = np.flatnonzero(slot & (pts.kind == 1))
+        for f in feats:
+            if f.kind == "line":
+                for i in planes:
+                    zs, Cs = pts.line[i], self._plane_cov(pts, i)
+                    e = line_residual((0, 0, 0), zs, f.z)[0]  # sonar - laser, same form
+                    S = f.cov + Cs
+                    if e @ np.linalg.solve(S, e) > CHI2_2_99:
+                        continue
+                    if _seg_dist(pts.xy[i : i + 1], f.endpoints)[0] > 0.2:
+                        continue
+                    zs = f.z + e  # the sonar line in the laser line's (alpha, d) form
+                    f.z, f.cov = fuse(f.z, f.cov, zs, Cs, angular=(True, False))
+                    f.source = "fused"
+                    stats["fused_lines"] += 1
+            elif f.kind == "corner":
+                for i in corners:
+                    zs = np.array([math.atan2(pts.xy[i, 1], pts.xy[i, 0]), np.hypot(*pts.xy[i])])
+                    Cs = _polar_cov(pts.xy[i], self._point_cov(pts, i))
+                    e = np.array([wrap_angle(zs[0] - f.z[0]), zs[1] - f.z[1]])
+                    if e @ np.linalg.solve(f.cov[:2, :2] + Cs, e) > CHI2_2_99:
+                        continue
+                    f.z, f.cov = fuse(f.z, f.cov, f.z[:2] + e, Cs, angular=(True, False), dims=2)
+                    f.source = "fused"
+                    stats["fused_corners"] += 1
+
+    def _point_from_cluster(self, c: Cluster, pts: SonarPoints, slot) -> Feature | None:
+        members = c.members[slot[c.members]]
+        if members.size == 0:
+            return None
+        i = members[np.argmin(np.hypot(*(pts.xy[members] - c.centre).T))]
+        xy = pts.xy[i]
+        z = np.array([math.atan2(xy[1], xy[0]), math.hypot(*xy)])
+        f = Feature(
+            "point",
+            z,
+            _polar_cov(xy, self._point_cov(pts, i)),
+            "sonar",
+            sonar_support=int(c.members.size),
+        )
+        f.sonar_readings = (pts.readings[int(pts.reading[i])],)
+        return f
+
+    def _points(self, segs, clusters, pts, slot, stats) -> list[Feature]:
+        ending = {s.end_cluster for s in segs if s.end is End.SONAR}
+        out = []
+        for k in sorted(c for c in ending if c is not None):
+            f = self._point_from_cluster(clusters[k], pts, slot)
+            if f is not None:
+                out.append(f)
+        return out
+
+    def _sonar_only(self, clusters, pts, slot, stats) -> list[Feature]:
+        out = []
+        for c in clusters:
+            if c.members.size >= self.p.min_cluster:
+                f = self._point_from_cluster(c, pts, slot)
+                if f is not None:
+                    out.append(f)
+        for i in np.flatnonzero(slot & (pts.kind == 0)):
+            out.append(
+                Feature(
+                    "line", pts.line[i].copy(), self._plane_cov(pts, i), "sonar", sonar_support=1
+                )
+            )
+        return out
+
+    # ------------------------------------------------------------------ frames
+
+    def _to_robot(self, f: Feature) -> Feature:
+        """Laser frame -> robot frame (the laser's mount); sonar points were moved with it."""
+        m = self.mount
+        if f.kind == "line":
+            z, _, Hz = line_to_world(m, f.z, (0.0, 0.0, 0.0))
+            f.z, f.cov = z, Hz @ f.cov @ Hz.T
+        elif f.kind == "corner":
+            c, _, Hz = corner_to_world(m, f.z)
+            z, _, Hc = predict_corner((0.0, 0.0, 0.0), c)
+            J = Hc @ Hz
+            f.z, f.cov = z, J @ f.cov @ J.T
+        else:
+            q, _, Hz = point_to_world(m, f.z)
+            z, _, Hp = predict_point((0.0, 0.0, 0.0), q)
+            J = Hp @ Hz
+            f.z, f.cov = z, J @ f.cov @ J.T
+        f.cov = 0.5 * (f.cov + f.cov.T)
+        if f.endpoints is not None:
+            c, s = math.cos(m[2]), math.sin(m[2])
+            e = f.endpoints
+            f.endpoints = np.column_stack(
+                [m[0] + c * e[:, 0] - s * e[:, 1], m[1] + s * e[:, 0] + c * e[:, 1]]
+            )
+        return f
+
+
+def _polar_cov(xy: NDArray[np.float64], C: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Covariance of (bearing, range) of a point at xy with Cartesian covariance C."""
+    x, y = xy
+    r2 = x * x + y * y
+    r = math.sqrt(r2)
+    J = np.array([[-y / r2, x / r2], [x / r, y / r]])
+    return J @ C @ J.T
+
+
+def _seg_dist(xy: NDArray[np.float64], ends: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Distances from points (N, 2) to the segment between ends[0] and ends[1]."""
+    a, b = ends[0], ends[1]
+    ab = b - a
+    t = np.clip(((xy - a) @ ab) / max(ab @ ab, 1e-12), 0.0, 1.0)
+    return np.hypot(*(xy - (a + t[:, None] * ab)).T)

@@ -1,0 +1,343 @@
+"""Front end: every termination condition by a scan built to trigger it, fusion against the
+closed form, sonar processing, the paper's Fig. 4 scene, modes, frames and bad input."""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import pytest
+from frontend_scenes import CFG, run_frontend, scene_events
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from factors.geometry import wrap_angle
+from fgslam.events import LaserScan, OdometryEvent, SonarEcho, SonarReading
+from fgslam.frontend.features import End
+from fgslam.frontend.fits import line_ranges
+from fgslam.frontend.fusion import fuse
+from fgslam.frontend.pipeline import FrontEnd
+from fgslam.frontend.segmentation import SegmentParams, segment_scan
+from fgslam.frontend.sonar import (
+    PoseHistory,
+    SonarBuffer,
+    cluster,
+    mark_invisible,
+    remove_phantoms,
+    to_laser_frame,
+)
+
+PHI = CFG.laser.bearings
+P = SegmentParams()
+
+
+def wall(alpha, d, sel):
+    r = np.full(PHI.size, np.nan)
+    r[sel] = line_ranges(alpha, d, PHI[sel])
+    return r
+
+
+# ------------------------------------------------------------------ segmentation
+
+
+def test_field_of_view_start_and_end():
+    # corridor walls y = -1 and y = +1 seen to the sides; nothing ahead (beyond max range)
+    r = np.where(PHI < -0.3, line_ranges(-math.pi / 2, 1.0, PHI), np.nan)
+    r = np.where(PHI > 0.3, line_ranges(math.pi / 2, 1.0, PHI), r)
+    r[r > P.max_range] = np.nan
+    segs, _ = segment_scan(PHI, r, P)
+    assert len(segs) == 2
+    assert segs[0].start is End.FIELD_OF_VIEW and segs[0].end is End.MAX_RANGE
+    assert segs[1].start is End.MAX_RANGE and segs[1].end is End.FIELD_OF_VIEW
+
+
+def test_discontinuity_and_inheritance():
+    r = wall(math.pi / 2, 3.0, PHI > -math.pi)  # the whole scan sees y = 3 ... clipped below
+    r = np.where(PHI < 0.0, line_ranges(0.0, 2.0, PHI), np.nan)
+    r[PHI >= 0.0] = line_ranges(math.pi / 4, 4.0, PHI[PHI >= 0.0])
+    r[r > 7.5] = np.nan
+    segs, _ = segment_scan(PHI, r, P)
+    ends = [s.end for s in segs]
+    assert End.DISCONTINUITY in ends
+    for a, b in itertools.pairwise(segs):
+        if a.last + 1 == b.first:
+            assert b.start is a.end  # the next line inherits the end condition
+
+
+def test_outliers_at_a_recess():
+    # wall x = 3 with a 10 cm recess for beams between 0.1 and 0.3 rad
+    r = line_ranges(0.0, 3.0, PHI)
+    rec = (PHI > 0.1) & (PHI < 0.3)
+    r[rec] = line_ranges(0.0, 3.1, PHI[rec])
+    r[np.abs(PHI) > 1.0] = np.nan
+    segs, _ = segment_scan(PHI, r, P)
+    assert segs[0].end is End.OUTLIERS
+    assert abs(PHI[segs[0].last] - 0.1) < 0.02
+    assert segs[1].start is End.OUTLIERS
+
+
+def test_spread_on_a_curved_wall():
+    r = np.where(np.abs(PHI) < 1.0, 2.0 + 0.6 * PHI**2, np.nan)  # a bulging wall
+    segs, _ = segment_scan(PHI, r, P)
+    assert any(s.end is End.SPREAD for s in segs)
+
+
+def test_max_range():
+    r = line_ranges(0.0, 3.0, PHI)
+    r[np.abs(PHI) > 1.0] = np.nan
+    r[(PHI > 0.2) & (PHI < 0.25)] = 20.0  # through a doorway: beyond the line range
+    segs, _ = segment_scan(PHI, r, P)
+    assert segs[0].end is End.MAX_RANGE and segs[1].start is End.MAX_RANGE
+
+
+def test_sonar_cluster_ends_line_and_too_few_points_rejected():
+    r = line_ranges(0.0, 3.0, PHI)
+    r[np.abs(PHI) > 1.0] = np.nan
+    near = np.full(PHI.size, -1)
+    near[(PHI > 0.0) & (PHI < 0.03)] = 4  # a sonar edge cluster (index 4) at the jamb
+    near[(PHI > 0.05) & (PHI < 0.07)] = 5  # and another just after it: too short a line
+    segs, rejected = segment_scan(PHI, r, P, near)
+    assert segs[0].end is End.SONAR and segs[0].end_cluster == 4
+    assert rejected["too_few_points"] >= 1
+    assert segs[1].start is End.SONAR
+
+
+# ------------------------------------------------------------------ fusion
+
+
+def test_fusion_matches_closed_form(rng):
+    for _ in range(50):
+        A = rng.normal(size=(2, 2))
+        B = rng.normal(size=(2, 2))
+        Cl, Cs = A @ A.T + 0.1 * np.eye(2), B @ B.T + 0.1 * np.eye(2)
+        zl, zs = rng.normal(size=2), rng.normal(size=2)
+        z, C = fuse(zl, Cl, zs, Cs, angular=(False, False))
+        Cf = np.linalg.inv(np.linalg.inv(Cl) + np.linalg.inv(Cs))
+        np.testing.assert_allclose(C, Cf, atol=1e-10)
+        np.testing.assert_allclose(
+            z, Cf @ (np.linalg.solve(Cl, zl) + np.linalg.solve(Cs, zs)), atol=1e-10
+        )
+
+
+def test_partial_fusion_of_corner_range_bearing(rng):
+    A = rng.normal(size=(3, 3))
+    Cl = A @ A.T + 0.1 * np.eye(3)
+    Cs = np.diag([0.01, 0.02])
+    zl, zs = np.array([0.3, 2.0, 1.0]), np.array([0.32, 2.05])
+    z, C = fuse(zl, Cl, zs, Cs, angular=(True, False), dims=2)
+    H = np.eye(2, 3)
+    info = np.linalg.inv(Cl) + H.T @ np.linalg.solve(Cs, H)
+    np.testing.assert_allclose(C, np.linalg.inv(info), atol=1e-10)
+    np.testing.assert_allclose(
+        z,
+        np.linalg.solve(info, np.linalg.solve(Cl, zl) + H.T @ np.linalg.solve(Cs, zs)),
+        atol=1e-10,
+    )
+    # angle wrap: a sonar bearing on the other side of +-pi fuses as a small difference
+    z2, _ = fuse(
+        np.array([math.pi - 0.01, 2.0]),
+        np.eye(2) * 0.01,
+        np.array([-math.pi + 0.01, 2.0]),
+        np.eye(2) * 0.01,
+        (True, False),
+    )
+    assert abs(wrap_angle(z2[0] - math.pi)) < 1e-9
+
+
+# ------------------------------------------------------------------ sonar processing
+
+
+def test_sonar_moved_into_laser_frame_with_odometry():
+    buf = SonarBuffer(CFG)
+    poses = PoseHistory()
+    poses.add(0.0, np.array([0.0, 0.0, 0.0]))
+    poses.add(1.0, np.array([1.0, 0.0, 0.0]))  # the robot drove 1 m forward
+    arr = CFG.sonar.arrays[0]  # left array, facing +y at pan 0
+    buf.add(SonarReading(0.0, 0, 0.0, (SonarEcho("edge", 2.0, 0.0),)))
+    pts = to_laser_frame(buf, CFG, poses, 1.0, 6.0)
+    m = CFG.laser.mount
+    # the echo is at world (arr.x, arr.y + 2) seen at t=0; the laser at t=1 is at (1 + m.x, 0)
+    np.testing.assert_allclose(pts.xy[0], [arr.mount.x - 1.0 - m.x, arr.mount.y + 2.0], atol=1e-12)
+
+
+def test_phantoms_clusters_and_visibility():
+    buf = SonarBuffer(CFG)
+    poses = PoseHistory()
+    poses.add(0.0, np.zeros(3))
+    r = line_ranges(math.pi / 2, 3.0, PHI)  # a wall y = 3 (laser frame) ahead-left
+    r[PHI < 0.3] = np.nan
+    # the left array panned 0.3 rad toward the front: an edge just before the wall, and a
+    # corner 5 m away (2 m behind the wall: a phantom)
+    pan = -0.3
+    d_wall = (3.0 - CFG.sonar.arrays[0].mount.y) / math.cos(pan)
+    for k in range(4):
+        echoes = (
+            SonarEcho("edge", d_wall - 0.1, 0.002 * k),
+            SonarEcho("corner", d_wall + 2.0, 0.0),
+        )
+        buf.add(SonarReading(0.01 * k, 0, pan, echoes))
+    pts = to_laser_frame(buf, CFG, poses, 0.0, 6.0)
+    kept, n_ph = remove_phantoms(pts, PHI, r, 0.3)
+    assert n_ph == 4 and len(kept) == 4
+    cl = cluster(kept, 0.15)
+    assert len(cl) == 1 and cl[0].counts.tolist() == [0, 0, 4]
+    xy = np.column_stack([r * np.cos(PHI), r * np.sin(PHI)])
+    mark_invisible(cl, xy[np.isfinite(r)], 0.3)
+    assert cl[0].visible
+    mark_invisible(cl, xy[np.isfinite(r)] + [0, 2.0], 0.3)
+    assert not cl[0].visible
+
+
+# ------------------------------------------------------------------ the paper's Fig. 4
+
+
+FIG4 = {
+    "walls": [{"id": "w", "points": [[-5.0, 2.5], [5.0, 2.5]]}],
+    "doors": [{"wall": "w", "at": 5.3, "width": 0.9, "recess": 0.04, "side": "left"}],
+    "legs": [{"x": -1.2, "y": 2.0, "radius": 0.03}],
+}
+
+
+def _lines_over(features, x0, x1):
+    return [
+        f
+        for f in features
+        if f.kind == "line" and f.endpoints[:, 0].min() < x0 and f.endpoints[:, 0].max() > x1
+    ]
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_fig4_door_segmented_only_with_sonar(seed):
+    pose = (0.0, 0.0, math.pi / 2)  # facing the wall; robot frame x = world y
+    evs, _ = scene_events(FIG4, pose, seed=seed)
+    (laser,) = run_frontend(evs, "laser")
+    (fused,) = run_frontend(evs, "fused")
+    # robot frame: world x maps to -y. The door spans world x 0.3..1.2 -> y -1.2..-0.3
+    door = lambda f: -1.25 < f.endpoints[:, 1].min() and f.endpoints[:, 1].max() < -0.25
+    lines_y = lambda feats: [f for f in feats if f.kind == "line"]
+    assert any(
+        f.endpoints[:, 1].min() < -1.3 and f.endpoints[:, 1].max() > -0.2
+        for f in lines_y(laser.features)
+    ), "laser alone merges the door into the wall"
+    door_lines = [f for f in lines_y(fused.features) if door(f)]
+    assert (
+        len(door_lines) == 1 and door_lines[0].start is End.SONAR and door_lines[0].end is End.SONAR
+    )
+    assert not any(
+        f.endpoints[:, 1].min() < -1.3 and f.endpoints[:, 1].max() > -0.2
+        for f in lines_y(fused.features)
+    )
+    # the table leg (world x = -1.2 -> robot y = 1.2, 2 m ahead) leaves no line in either mode
+    for sf in (laser, fused):
+        assert not [
+            f
+            for f in lines_y(sf.features)
+            if abs(f.z[1] - 2.0) < 0.2 and abs(wrap_angle(f.z[0])) < 0.3
+        ]
+    # the door line is at the recessed door plane and has sonar support
+    assert abs(door_lines[0].z[1] - (2.54 - CFG.laser.mount.x * 0)) < 0.03
+    assert door_lines[0].sonar_support > 0
+
+
+# ------------------------------------------------------------------ modes, frames, inflation
+
+
+ROOM = {"walls": [{"id": "r", "points": [[-3, -2], [4, -2], [4, 3], [-3, 3]], "closed": True}]}
+
+
+def test_modes_and_robot_frame():
+    evs, _ = scene_events(ROOM, (0.0, 0.0, 0.0), seed=3)
+    (fused,) = run_frontend(evs, "fused")
+    (laser,) = run_frontend(evs, "laser")
+    sonar = run_frontend(evs, "sonar")
+    assert laser.count("point") == 0 and all(f.source == "laser" for f in laser.features)
+    assert sonar and all(f.source == "sonar" for s in sonar for f in s.features)
+    assert sum(s.count("line") for s in sonar) > 0
+    # the wall x = 4 in the robot frame (robot at the origin facing +x) is (0, 4)
+    front = [f for f in fused.features if f.kind == "line" and abs(f.z[0]) < 0.05]
+    assert front and abs(front[0].z[1] - 4.0) < 0.05
+    # the concave corner (4, 3): bearing atan2(3, 4), range 5, bisector into the room
+    corners = [f for f in fused.features + laser.features if f.kind == "corner"]
+    assert any(
+        abs(f.z[0] - math.atan2(3, 4)) < 0.02
+        and abs(f.z[1] - 5) < 0.05
+        and abs(wrap_angle(f.z[2] + 3 * math.pi / 4)) < 0.05
+        for f in corners
+    )
+    for sf in (fused, laser):
+        for f in sf.features:
+            assert np.all(np.linalg.eigvalsh(f.cov) > 0)
+
+
+def test_time_registration_inflates_when_moving():
+    _, ranges = scene_events(ROOM, seed=4, sonar=False)
+    fe = FrontEnd(CFG, "laser")
+    still = fe.process_scan(LaserScan(1.0, ranges), 0.0, 0.0)
+    moving = fe.process_scan(LaserScan(1.0, ranges), 0.5, 0.5)
+    a = [f.cov for f in still.features if f.kind == "line"]
+    b = [f.cov for f in moving.features if f.kind == "line"]
+    assert a and len(a) == len(b)
+    add = (0.5 * CFG.laser.sigma_time) ** 2
+    for ca, cb in zip(a, b, strict=True):  # (alpha, d); the mount moves a little into d
+        np.testing.assert_allclose(np.diag(cb) - np.diag(ca), [add, add], rtol=0.05)
+
+
+# ------------------------------------------------------------------ bad input
+
+
+def test_special_values_never_raise():
+    fe = FrontEnd(CFG, "fused")
+    r = line_ranges(0.0, 3.0, PHI)
+    r[::7] = np.nan
+    r[::11] = 0.0
+    r[::13] = 81.83  # special PLS codes converted to metres
+    r[::17] = -1.0
+    r[::19] = np.inf
+    sf = fe.process_scan(LaserScan(0.0, r), 0.0, 0.0)
+    assert sf.stats["beams_invalid"] > 0
+    empty = fe.process_scan(LaserScan(0.0, np.full(PHI.size, np.nan)), 0.0, 0.0)
+    assert empty.features == []
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.lists(
+        st.one_of(st.floats(0.0, 100.0), st.just(float("nan")), st.just(float("inf"))),
+        min_size=361,
+        max_size=361,
+    ),
+    st.sampled_from(["fused", "laser", "sonar"]),
+)
+def test_fuzz_random_scans(ranges, mode):
+    fe = FrontEnd(CFG, mode)
+    out = fe.add(OdometryEvent(0.01, 3, 2))
+    out += fe.add(LaserScan(0.02, np.array(ranges)))
+    out += fe.finish()
+    for sf in out:
+        for f in sf.features:
+            assert np.all(np.isfinite(f.z)) and np.all(np.isfinite(f.cov))
+
+
+def test_fusion_and_points_on_the_simulated_corridor():
+    """On a stretch of the simulated run, sonar fuses into lines and corners, yields point
+    features at line ends, and removes phantoms; laser-only mode has none of these."""
+    from fgslam.config import load_config
+    from fgslam.sim.simulate import events, plan_run
+    from fgslam.sim.world import load_world
+
+    cfg, w = load_config(), load_world("corridor")
+    run = plan_run(w, cfg, seed=2, duration=60.0)
+    evs = list(events(w, cfg, run))
+    total = {}
+    for mode in ("fused", "laser"):
+        stats = {}
+        for sf in run_frontend(evs, mode, cfg):
+            for k, v in sf.stats.items():
+                stats[k] = stats.get(k, 0) + v
+        total[mode] = stats
+    f, l = total["fused"], total["laser"]
+    assert f["fused_lines"] > 0 and f["fused_corners"] > 0 and f["points"] > 0
+    assert f["sonar_phantoms_removed"] > 0 and f["sonar_clusters_invisible"] > 0
+    assert l.get("points", 0) == 0 and "fused_lines" not in l
+    assert l["lines"] > 100 and l["corners"] > 10
