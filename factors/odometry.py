@@ -169,17 +169,22 @@ def to_between_covariance(P_start: ArrayLike, dth: float) -> NDArray[np.float64]
     return 0.5 * (P + P.T)
 
 
+# Variance floor added to every preintegrated covariance (0.1 mm, 0.1 mrad standard deviation):
+# a robot standing still has zero odometry uncertainty in eq 4, and a between factor that
+# strong makes the factor graph ill conditioned (iSAM2 then reports an indeterminate system).
+COVARIANCE_FLOOR = 1e-8
+
+
 def preintegrate(lr: ArrayLike, ll: ArrayLike, params: OdometryParams) -> Preintegrated:
     """Integrate the samples between two keyframes in the first keyframe's frame, from the
-    identity with zero covariance. An empty interval gives the identity with a tiny covariance
-    (1e-12) so that the factor stays well defined."""
+    identity with zero covariance (plus :data:`COVARIANCE_FLOOR`); an empty interval gives
+    the identity."""
     lr = np.atleast_1d(np.asarray(lr, dtype=float))
     if lr.size == 0:
-        eps = np.eye(3) * 1e-12
+        eps = np.eye(3) * COVARIANCE_FLOOR
         return Preintegrated(gtsam.Pose2(), eps, eps, 0)
     (x, y, th), P = propagate(lr, ll, params)
-    # Keep the covariance positive definite even for a robot standing still.
-    P = P + np.eye(3) * 1e-12
+    P = P + np.eye(3) * COVARIANCE_FLOOR
     return Preintegrated(
         gtsam.Pose2(x, y, wrap_angle(th)), to_between_covariance(P, th), P, int(lr.size)
     )
@@ -244,10 +249,10 @@ class OdometryIntegrator:
     def keyframe(self) -> Preintegrated:
         """Relative motion since the previous keyframe (GTSAM between convention); restart."""
         if self._n == 0:
-            eps = np.eye(3) * 1e-12
+            eps = np.eye(3) * COVARIANCE_FLOOR
             out = Preintegrated(gtsam.Pose2(), eps, eps, 0)
         else:
-            P = 0.5 * (self._P + self._P.T) + np.eye(3) * 1e-12
+            P = 0.5 * (self._P + self._P.T) + np.eye(3) * COVARIANCE_FLOOR
             x, y, th = self._rel
             out = Preintegrated(
                 gtsam.Pose2(x, y, wrap_angle(th)), to_between_covariance(P, th), P, self._n

@@ -10,6 +10,7 @@ import argparse
 import json
 import sys
 from collections.abc import Callable, Sequence
+from pathlib import Path
 
 from fgslam import __version__
 from fgslam.errors import UserError
@@ -116,6 +117,110 @@ def _cmd_plot_log(args: argparse.Namespace) -> int:
     return 0
 
 
+def _log_duration(path: str) -> float | None:
+    from fgslam.logfile import LogReader
+
+    with LogReader(path) as r:
+        d = r.meta.get("duration")
+    return float(d) if isinstance(d, int | float) else None
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    from fgslam.config import load_config
+    from fgslam.logfile import LogReader
+    from fgslam.slam.outputs import write_outputs
+    from fgslam.slam.runner import run_slam
+
+    reader = LogReader(args.log, tolerant=args.tolerant)
+    cfg = load_config(args.config) if args.config else reader.config
+    total = _log_duration(args.log)
+    bar = _progress_bar(f"{args.backend}/{args.sensors}")
+    t_first: list[float] = []
+
+    def progress(t: float) -> None:
+        if not t_first:
+            t_first.append(t)
+        if total:
+            bar(min(t - t_first[0], total), total)
+
+    try:
+        res = run_slam(reader, cfg, args.backend, args.sensors, progress)
+    finally:
+        bar.close()
+    rep = write_outputs(res, args.out, reader.meta.get("true_map"))
+    if reader.skipped:
+        print(f"skipped {reader.skipped} bad records: {dict(reader.skipped_by_reason)}")
+    _print_summary(rep, args.out)
+    return 0
+
+
+def _print_summary(rep: dict, out: str) -> None:
+    lm = rep["landmarks"]
+    msg = (
+        f"{rep['backend']}/{rep['sensors']}: {rep['poses']} poses, "
+        f"{rep['landmarks_total']} landmarks ({', '.join(f'{v} {k}s' for k, v in lm.items())}), "
+        f"{rep['wall_time_s']:.1f} s for {rep['log_duration_s']:.1f} s of log"
+    )
+    if "ate" in rep:
+        msg += (
+            f"; ATE RMSE {rep['ate']['rmse']:.3f} m (max {rep['ate']['max']:.3f} m, "
+            f"odometry alone {rep['ate_odometry']['rmse']:.3f} m)"
+        )
+    print(msg)
+    print(f"wrote {out}/trajectory.tum, map.json, report.json, map.png")
+
+
+def _cmd_compare(args: argparse.Namespace) -> int:
+    from fgslam.slam.compare import compare
+
+    rows = _compare(args.log, args.out, args.config)
+    print((Path(args.out) / "comparison.md").read_text(), end="")
+    print(f"wrote {args.out}/comparison.json, comparison.md, comparison.png and one folder per run")
+    return 0 if rows and compare else 1
+
+
+def _compare(log: str, out: str, config: str | None) -> list:
+    from tqdm import tqdm
+
+    from fgslam.slam.compare import compare
+    from fgslam.slam.runner import BACKENDS, SENSORS
+
+    with tqdm(
+        total=len(BACKENDS) * len(SENSORS),
+        desc="backends x sensors",
+        unit="run",
+        disable=None,
+        leave=False,
+    ) as bar:
+        return compare(log, out, config, on_done=lambda _res: bar.update(1))
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    import time
+
+    from fgslam.config import load_config
+    from fgslam.sim import simulate_to_log
+    from fgslam.sim.world import load_world
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    log = out / "corridor.log.gz"
+    t0 = time.perf_counter()
+    bar = _progress_bar("simulating")
+    try:
+        run = simulate_to_log(load_world("corridor"), load_config(), log, args.seed, progress=bar)
+    finally:
+        bar.close()
+    print(f"simulated the corridor run: {run.duration:.0f} s, {run.distance:.0f} m -> {log}")
+    _compare(str(log), str(out), None)
+    print((out / "comparison.md").read_text(), end="")
+    print(
+        f"demo done in {time.perf_counter() - t0:.0f} s: see {out}/comparison.png and "
+        f"{out}/<backend>-<sensors>/map.png"
+    )
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="fgslam",
@@ -179,6 +284,72 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--world", help="world JSON file, when the log's world is not built in")
     p.add_argument("--scan-time", type=float, help="time (s) of the scan to draw (default: middle)")
     p.set_defaults(func=_cmd_plot_log)
+
+    p = sub.add_parser(
+        "run",
+        help="run SLAM on a log (EKF, iSAM2 or batch; fused, laser or sonar)",
+        description=(
+            "Run the front end (line, corner and point features, sonar-aided segmentation and "
+            "fusion) and one SLAM backend over a log, and write trajectory.tum (TUM format), "
+            "map.json, report.json (accuracy against the truth when the log has it, timing) "
+            "and map.png into --out."
+        ),
+    )
+    p.add_argument("log", help="native log file (.log or .log.gz)")
+    p.add_argument(
+        "--backend",
+        choices=["ekf", "isam2", "batch"],
+        default="isam2",
+        help="the paper's EKF, incremental smoothing, or batch LM smoothing (default isam2)",
+    )
+    p.add_argument(
+        "--sensors",
+        choices=["fused", "laser", "sonar"],
+        default="fused",
+        help="laser and sonar fused (the paper), laser only, or sonar only (default fused)",
+    )
+    p.add_argument(
+        "--config", metavar="ROBOT.toml", help="robot configuration (default: the log's)"
+    )
+    p.add_argument(
+        "--tolerant", action="store_true", help="skip malformed records instead of stopping"
+    )
+    p.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    p.set_defaults(func=_cmd_run)
+
+    p = sub.add_parser(
+        "compare",
+        help="every backend and sensor mode on one log, compared",
+        description=(
+            "Run EKF, iSAM2 and batch smoothing in fused, laser-only and sonar-only modes on the "
+            "same log (the front end runs once per mode), write each run's outputs into "
+            "DIR/<backend>-<sensors>/, and comparison.json, comparison.md and comparison.png "
+            "(trajectories and errors over time) into DIR."
+        ),
+    )
+    p.add_argument("log", help="native log file (.log or .log.gz)")
+    p.add_argument(
+        "--config", metavar="ROBOT.toml", help="robot configuration (default: the log's)"
+    )
+    p.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    p.set_defaults(func=_cmd_compare)
+
+    p = sub.add_parser(
+        "demo",
+        help="simulate the paper's corridor run and compare all backends (a few minutes)",
+        description=(
+            "Simulate the built-in corridor run (the paper's experiment) and run `fgslam "
+            "compare` on it: EKF vs iSAM2 vs batch, fused vs laser-only vs sonar-only."
+        ),
+    )
+    p.add_argument(
+        "--out",
+        default="fgslam-demo",
+        metavar="DIR",
+        help="output directory (default ./fgslam-demo)",
+    )
+    p.add_argument("--seed", type=int, default=0, help="simulation seed (default 0)")
+    p.set_defaults(func=_cmd_demo)
     return parser
 
 

@@ -1,0 +1,1 @@
+"""SLAM: map management shared by three backends (the paper's EKF, iSAM2, batch smoothing)."""

@@ -1,0 +1,65 @@
+"""The interface every SLAM backend offers the map manager and the runner (world frame)."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+
+import numpy as np
+from numpy.typing import NDArray
+
+from factors.odometry import Preintegrated
+from fgslam.frontend.features import Feature
+
+# landmark means by id, and the joint covariance of [pose, those landmarks] in world
+# coordinates (pose x, y, theta first; then each landmark's parameters in the order given)
+Estimate = tuple[dict[int, NDArray[np.float64]], NDArray[np.float64]]
+
+
+class Backend(ABC):
+    """One keyframe at a time: :meth:`predict` with the odometry since the last keyframe, then
+    :meth:`observe` / :meth:`add_landmark` / :meth:`merge` as the map manager decides, then
+    :meth:`commit`. ``trajectory`` collects (t, pose, 3x3 covariance) per keyframe as the
+    backend estimated it at that time (filtered for the EKF); :meth:`finish` returns the final
+    (smoothed, for graphs) trajectory."""
+
+    name = "backend"
+
+    def __init__(self) -> None:
+        self.trajectory: list[tuple[float, NDArray[np.float64], NDArray[np.float64]]] = []
+        self._pending_t = 0.0
+
+    @abstractmethod
+    def start(self, t: float, pose: NDArray[np.float64], cov: NDArray[np.float64]) -> None: ...
+
+    @abstractmethod
+    def predict(self, t: float, pre: Preintegrated) -> None: ...
+
+    @abstractmethod
+    def pose(self) -> NDArray[np.float64]:
+        """Current (predicted or updated) pose estimate (x, y, theta)."""
+
+    @abstractmethod
+    def estimate(self, lids: list[int]) -> Estimate: ...
+
+    @abstractmethod
+    def means(self) -> dict[int, NDArray[np.float64]]:
+        """All landmark means (world parameters) by id."""
+
+    @abstractmethod
+    def observe(self, lid: int, f: Feature) -> None: ...
+
+    @abstractmethod
+    def add_landmark(self, lid: int, f: Feature) -> None: ...
+
+    @abstractmethod
+    def merge(self, keep: int, drop: int) -> None: ...
+
+    @abstractmethod
+    def commit(self) -> None: ...
+
+    @abstractmethod
+    def landmark_covariances(self) -> dict[int, NDArray[np.float64]]: ...
+
+    def finish(self) -> list[tuple[float, NDArray[np.float64], NDArray[np.float64]]]:
+        """The final trajectory estimate: (t, pose, covariance) per keyframe."""
+        return self.trajectory

@@ -1,0 +1,153 @@
+"""The paper's filter: EKF SLAM with the robot pose and line (alpha, d), corner (x, y, theta)
+and point (x, y) landmarks in one state vector (world frame, m, rad).
+
+Prediction composes the preintegrated odometry of eq 4 (its covariance in the previous
+keyframe's axes); updates use the shared measurement models of ``factors``; new landmarks are
+appended with their cross-covariances; merged lines are tied by a perfect pseudo-measurement
+and the dropped one is marginalised out of the state.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+
+from factors.geometry import wrap_angle
+from factors.odometry import Preintegrated
+from fgslam.frontend.features import Feature
+from fgslam.slam import models
+from fgslam.slam.backend import Backend, Estimate
+
+
+class EkfBackend(Backend):
+    name = "ekf"
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.x = np.zeros(3)
+        self.P = np.zeros((3, 3))
+        self.index: dict[int, tuple[int, str]] = {}  # landmark id -> (offset, kind)
+
+    def start(self, t: float, pose: NDArray[np.float64], cov: NDArray[np.float64]) -> None:
+        self.x = np.array(pose, dtype=float)
+        self.P = np.array(cov, dtype=float)
+        self._pending_t = t
+
+    def predict(self, t: float, pre: Preintegrated) -> None:
+        x, y, th = self.x[:3]
+        dx, dy, dth = pre.delta.x(), pre.delta.y(), pre.delta.theta()
+        c, s = math.cos(th), math.sin(th)
+        self.x[:3] = (x + c * dx - s * dy, y + s * dx + c * dy, wrap_angle(th + dth))
+        F = np.array([[1.0, 0.0, -s * dx - c * dy], [0.0, 1.0, c * dx - s * dy], [0.0, 0.0, 1.0]])
+        G = np.eye(3)
+        G[:2, :2] = [[c, -s], [s, c]]
+        P = self.P
+        P[:3, :] = F @ P[:3, :]
+        P[:, :3] = P[:, :3] @ F.T
+        P[:3, :3] += G @ pre.covariance_start @ G.T
+        self._pending_t = t
+
+    def pose(self) -> NDArray[np.float64]:
+        return self.x[:3].copy()
+
+    def estimate(self, lids: list[int]) -> Estimate:
+        idx = list(range(3))
+        means = {}
+        for lid in lids:
+            o, kind = self.index[lid]
+            n = models.DIM[kind]
+            idx.extend(range(o, o + n))
+            means[lid] = self.x[o : o + n].copy()
+        return means, self.P[np.ix_(idx, idx)].copy()
+
+    def means(self) -> dict[int, NDArray[np.float64]]:
+        return {
+            lid: models.normalize(kind, self.x[o : o + models.DIM[kind]])
+            for lid, (o, kind) in self.index.items()
+        }
+
+    def _update(
+        self, e: NDArray[np.float64], H: NDArray[np.float64], R: NDArray[np.float64]
+    ) -> None:
+        """EKF update for residual e = prediction - measurement with Jacobian H (Joseph form
+        is replaced by the symmetric form plus symmetrisation, cheaper at this size)."""
+        P = self.P
+        PHt = P @ H.T
+        S = H @ PHt + R
+        K = np.linalg.solve(S, PHt.T).T
+        self.x -= K @ e
+        self.P = P - K @ S @ K.T
+        self.P = 0.5 * (self.P + self.P.T)
+        self.x[2] = wrap_angle(self.x[2])
+        for o, kind in self.index.values():
+            if kind == "line":
+                self.x[o] = wrap_angle(self.x[o])
+            elif kind == "corner":
+                self.x[o + 2] = wrap_angle(self.x[o + 2])
+
+    def observe(self, lid: int, f: Feature) -> None:
+        o, kind = self.index[lid]
+        n = models.DIM[kind]
+        e, Hx, Hl = models.residual(kind, self.x[:3], self.x[o : o + n], f.z)
+        H = np.zeros((len(e), self.x.size))
+        H[:, :3] = Hx
+        H[:, o : o + n] = Hl
+        self._update(e, H, f.cov)
+
+    def add_landmark(self, lid: int, f: Feature) -> None:
+        kind = f.kind
+        lm, Hx, Hz = models.to_world(kind, self.x[:3], f.z)
+        n0 = self.x.size
+        n = lm.size
+        P = self.P
+        Pxl = Hx @ P[:3, :]  # cross-covariance of the new landmark with the whole state
+        Pll = Hx @ P[:3, :3] @ Hx.T + Hz @ f.cov @ Hz.T
+        newP = np.zeros((n0 + n, n0 + n))
+        newP[:n0, :n0] = P
+        newP[n0:, :n0] = Pxl
+        newP[:n0, n0:] = Pxl.T
+        newP[n0:, n0:] = Pll
+        self.P = newP
+        self.x = np.concatenate([self.x, lm])
+        self.index[lid] = (n0, kind)
+
+    def merge(self, keep: int, drop: int) -> None:
+        ok, kind = self.index[keep]
+        od, _ = self.index[drop]
+        n = models.DIM[kind]
+        a, b = self.x[ok : ok + n], self.x[od : od + n]
+        e = a - b
+        sign = 1.0
+        if kind == "line" and abs(wrap_angle(a[0] - b[0])) > math.pi / 2:
+            e = np.array([wrap_angle(a[0] - b[0] - math.pi), a[1] + b[1]])
+            sign = -1.0
+        elif kind == "line":
+            e[0] = wrap_angle(e[0])
+        if kind == "corner":
+            e[2] = wrap_angle(e[2])
+        H = np.zeros((n, self.x.size))
+        H[:, ok : ok + n] = np.eye(n)
+        H[:, od : od + n] = -np.eye(n)
+        if sign < 0:
+            H[1, od + 1] = 1.0
+        self._update(e, H, np.eye(n) * 1e-10)
+        keepmask = np.ones(self.x.size, dtype=bool)
+        keepmask[od : od + n] = False
+        self.x = self.x[keepmask]
+        self.P = self.P[np.ix_(keepmask, keepmask)]
+        del self.index[drop]
+        self.index = {lid: (o - n if o > od else o, k) for lid, (o, k) in self.index.items()}
+
+    def commit(self) -> None:
+        self._record(self._pending_t)
+
+    def _record(self, t: float) -> None:
+        self.trajectory.append((t, self.x[:3].copy(), self.P[:3, :3].copy()))
+
+    def landmark_covariances(self) -> dict[int, NDArray[np.float64]]:
+        return {
+            lid: self.P[o : o + models.DIM[k], o : o + models.DIM[k]].copy()
+            for lid, (o, k) in self.index.items()
+        }

@@ -1,0 +1,282 @@
+"""Factor-graph backends: iSAM2 (one incremental update per keyframe) and batch
+Levenberg-Marquardt smoothing of the whole graph (offline).
+
+Variables: robot poses X(k) (``Pose2``), landmarks L(id): lines ``Vector2`` (alpha, d),
+corners ``Pose2``, points ``Point2``. Factors: a prior on the first pose, preintegrated
+odometry (``BetweenFactorPose2``), and the landmark factors of ``factors``.
+
+Association uses the current estimate and the *exact* joint marginal covariance of the last
+pose and the candidate landmarks (``ISAM2.jointMarginalCovariance``), propagated through the
+odometry of the new keyframe exactly as the EKF predicts; GTSAM's tangent-space covariances
+are rotated into world coordinates first.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import gtsam
+import numpy as np
+from numpy.typing import NDArray
+
+from factors.geometry import wrap_angle
+from factors.odometry import Preintegrated
+from fgslam.errors import UserError
+from fgslam.frontend.features import Feature
+from fgslam.slam import models
+from fgslam.slam.backend import Backend, Estimate
+
+
+def X(k: int) -> int:
+    return gtsam.symbol("x", k)
+
+
+def L(i: int) -> int:
+    return gtsam.symbol("l", i)
+
+
+class BackendError(UserError):
+    """The optimiser could not solve the problem (reported to the user, never a traceback)."""
+
+
+def _rot_block(th: float) -> NDArray[np.float64]:
+    c, s = math.cos(th), math.sin(th)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _line_equality(k1: int, k2: int) -> gtsam.CustomFactor:
+    """Two line variables describe the same line (either parametrisation)."""
+    noise = gtsam.noiseModel.Isotropic.Sigma(2, 1e-3)
+
+    def error(this, values, H):
+        a, b = values.atVector(k1), values.atVector(k2)
+        da = wrap_angle(a[0] - b[0])
+        if abs(da) > math.pi / 2:
+            e = np.array([wrap_angle(da - math.pi), a[1] + b[1]])
+            Hb = np.array([[-1.0, 0.0], [0.0, 1.0]])
+        else:
+            e = np.array([da, a[1] - b[1]])
+            Hb = -np.eye(2)
+        if H is not None:
+            H[0], H[1] = np.eye(2), Hb
+        return e
+
+    return gtsam.CustomFactor(noise, [k1, k2], error)
+
+
+class GraphBackend(Backend):
+    """iSAM2 online, one update per keyframe; after :meth:`run_batch` the results are the
+    Levenberg-Marquardt solution of the whole graph (initialised from the incremental one)."""
+
+    name = "isam2"
+
+    def __init__(self, covariances: bool = True) -> None:
+        super().__init__()
+        self.batch = False
+        self.covariances = covariances
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(0.05)
+        params.relinearizeSkip = 1
+        self.isam = gtsam.ISAM2(params)
+        self.graph = gtsam.NonlinearFactorGraph()  # everything, for batch and for reports
+        self.new_graph = gtsam.NonlinearFactorGraph()
+        self.new_values = gtsam.Values()
+        self.kinds: dict[int, str] = {}
+        self.k = -1
+        self.times: list[float] = []
+        self._pose_pred = np.zeros(3)
+        self._pre: Preintegrated | None = None
+        self._est = gtsam.Values()
+        self.batch_seconds = 0.0
+
+    # ------------------------------------------------------------------ keyframes
+
+    def start(self, t: float, pose: NDArray[np.float64], cov: NDArray[np.float64]) -> None:
+        self.k = 0
+        self.times.append(t)
+        p = gtsam.Pose2(*pose)
+        # the prior is on the body tangent: rotate the world covariance
+        R = _rot_block(pose[2])
+        self.new_graph.add(
+            gtsam.PriorFactorPose2(X(0), p, gtsam.noiseModel.Gaussian.Covariance(R.T @ cov @ R))
+        )
+        self.new_values.insert(X(0), p)
+        self._pose_pred = np.array(pose, dtype=float)
+        self._pending_t = t
+
+    def predict(self, t: float, pre: Preintegrated) -> None:
+        prev = self._est.atPose2(X(self.k))
+        self.k += 1
+        self.times.append(t)
+        pred = prev.compose(pre.delta)
+        self.new_graph.add(pre.factor(X(self.k - 1), X(self.k)))
+        self.new_values.insert(X(self.k), pred)
+        self._pose_pred = np.array([pred.x(), pred.y(), pred.theta()])
+        self._pre = pre
+        self._pending_t = t
+
+    def pose(self) -> NDArray[np.float64]:
+        return self._pose_pred.copy()
+
+    def _mean(self, lid: int) -> NDArray[np.float64]:
+        key, kind = L(lid), self.kinds[lid]
+        if kind == "corner":
+            p = self._est.atPose2(key)
+            return np.array([p.x(), p.y(), p.theta()])
+        return np.array(self._est.atVector(key))
+
+    def means(self) -> dict[int, NDArray[np.float64]]:
+        return {
+            lid: models.normalize(kind, self._mean(lid))
+            for lid, kind in self.kinds.items()
+            if self._est.exists(L(lid))
+        }
+
+    def estimate(self, lids: list[int]) -> Estimate:
+        """Means and world-frame joint covariance of [predicted pose, landmarks]."""
+        means = {lid: self._mean(lid) for lid in lids}
+        keys = [X(self.k - 1)] + [L(lid) for lid in lids]
+        J = self.isam.jointMarginalCovariance(keys).fullMatrix()
+        # tangent (body) -> world for Pose2 blocks
+        prev = self._est.atPose2(X(self.k - 1))
+        blocks = [_rot_block(prev.theta())]
+        for lid in lids:
+            n = models.DIM[self.kinds[lid]]
+            blocks.append(_rot_block(means[lid][2]) if self.kinds[lid] == "corner" else np.eye(n))
+        T = _blockdiag(blocks)
+        P = T @ J @ T.T
+        # propagate the pose through the new keyframe's odometry (as the EKF predicts)
+        pre = self._pre
+        th = prev.theta()
+        c, s = math.cos(th), math.sin(th)
+        dx, dy = pre.delta.x(), pre.delta.y()
+        F = np.array([[1.0, 0.0, -s * dx - c * dy], [0.0, 1.0, c * dx - s * dy], [0.0, 0.0, 1.0]])
+        G = _rot_block(th)
+        P[:3, :] = F @ P[:3, :]
+        P[:, :3] = P[:, :3] @ F.T
+        P[:3, :3] += G @ pre.covariance_start @ G.T
+        return means, P
+
+    # ------------------------------------------------------------------ measurements
+
+    def observe(self, lid: int, f: Feature) -> None:
+        self.new_graph.add(models.factor(self.kinds[lid], X(self.k), L(lid), f))
+
+    def add_landmark(self, lid: int, f: Feature) -> None:
+        self.kinds[lid] = f.kind
+        lm, _, _ = models.to_world(f.kind, self._pose_pred, f.z)
+        self.new_values.insert(L(lid), models.value(f.kind, lm))
+        self.new_graph.add(models.factor(f.kind, X(self.k), L(lid), f))
+
+    def merge(self, keep: int, drop: int) -> None:
+        kind = self.kinds[keep]
+        if kind == "line":
+            self.new_graph.add(_line_equality(L(keep), L(drop)))
+        elif kind == "corner":
+            self.new_graph.add(
+                gtsam.BetweenFactorPose2(
+                    L(keep), L(drop), gtsam.Pose2(), gtsam.noiseModel.Isotropic.Sigma(3, 1e-3)
+                )
+            )
+        else:
+            self.new_graph.add(
+                gtsam.BetweenFactorPoint2(
+                    L(keep), L(drop), np.zeros(2), gtsam.noiseModel.Isotropic.Sigma(2, 1e-3)
+                )
+            )
+
+    def commit(self) -> None:
+        try:
+            self.isam.update(self.new_graph, self.new_values)
+        except RuntimeError as exc:  # IndeterminantLinearSystemException and kin
+            raise BackendError(
+                f"iSAM2 could not solve keyframe {self.k} (t = {self._pending_t:.2f} s): "
+                f"{str(exc).splitlines()[0]}"
+            ) from None
+        self.graph.push_back(self.new_graph)
+        # start a new empty graph: re-adding factors would silently double information
+        self.new_graph = gtsam.NonlinearFactorGraph()
+        self.new_values = gtsam.Values()
+        self._est = self.isam.calculateEstimate()
+        p = self._est.atPose2(X(self.k))
+        self._pose_pred = np.array([p.x(), p.y(), p.theta()])
+        self.trajectory.append((self._pending_t, self._pose_pred.copy(), None))
+
+    # ------------------------------------------------------------------ results
+
+    def run_batch(self) -> None:
+        """Solve the whole graph by Levenberg-Marquardt from the incremental estimate; from
+        then on, results (trajectory, means, covariances) are the batch solution."""
+        t0 = time.perf_counter()
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(100)
+        params.setRelativeErrorTol(1e-6)
+        try:
+            self._est = gtsam.LevenbergMarquardtOptimizer(self.graph, self._est, params).optimize()
+        except RuntimeError as exc:
+            raise BackendError(f"batch optimisation failed: {str(exc).splitlines()[0]}") from None
+        self.batch = True
+        self.name = "batch"
+        self._marg = None
+        self.batch_seconds = time.perf_counter() - t0
+
+    def finish(self) -> list[tuple[float, NDArray[np.float64], NDArray[np.float64] | None]]:
+        if self.k < 0:
+            return []
+        if not self.batch:
+            for _ in range(2):  # let the last relinearisations settle
+                self.isam.update()
+            self._est = self.isam.calculateEstimate()
+        covs = self._pose_covariances()
+        out = []
+        for k, t in enumerate(self.times):
+            p = self._est.atPose2(X(k))
+            out.append((t, np.array([p.x(), p.y(), p.theta()]), covs[k] if covs else None))
+        return out
+
+    def _marginals(self):
+        if not self.batch:
+            return None
+        if getattr(self, "_marg", None) is None:
+            self._marg = gtsam.Marginals(self.graph, self._est)
+        return self._marg
+
+    def _pose_covariances(self) -> list[NDArray[np.float64]] | None:
+        if not self.covariances:
+            return None
+        m = self._marginals()
+        out = []
+        for k in range(len(self.times)):
+            C = m.marginalCovariance(X(k)) if m is not None else self.isam.marginalCovariance(X(k))
+            R = _rot_block(self._est.atPose2(X(k)).theta())
+            out.append(R @ C @ R.T)
+        return out
+
+    def landmark_covariances(self) -> dict[int, NDArray[np.float64]]:
+        m = self._marginals()
+        out = {}
+        for lid, kind in self.kinds.items():
+            if not self._est.exists(L(lid)):
+                continue
+            C = (
+                m.marginalCovariance(L(lid))
+                if m is not None
+                else self.isam.marginalCovariance(L(lid))
+            )
+            if kind == "corner":
+                R = _rot_block(self._est.atPose2(L(lid)).theta())
+                C = R @ C @ R.T
+            out[lid] = C
+        return out
+
+
+def _blockdiag(blocks: list[NDArray[np.float64]]) -> NDArray[np.float64]:
+    n = sum(b.shape[0] for b in blocks)
+    T = np.zeros((n, n))
+    o = 0
+    for b in blocks:
+        k = b.shape[0]
+        T[o : o + k, o : o + k] = b
+        o += k
+    return T

@@ -1,0 +1,94 @@
+"""The measurement models of the three landmark kinds, seen from SLAM: one place that maps a
+feature kind to the shared prediction/residual/initialisation functions of ``factors`` and to
+its GTSAM factor. Features are in the robot frame, so the sensor mount is the identity.
+
+World parametrisations (what the EKF stores and the map reports): line (alpha, d); corner
+(x, y, theta) with theta the bisector into free space; point (x, y). Angles rad, lengths m.
+"""
+
+from __future__ import annotations
+
+import math
+
+import gtsam
+import numpy as np
+from numpy.typing import NDArray
+
+from factors.corner import (
+    corner_bearing_range_factor,
+    corner_factor,
+    corner_residual,
+    corner_to_world,
+)
+from factors.geometry import wrap_angle
+from factors.line import line_factor, line_residual, line_to_world
+from factors.point import point_factor, point_residual, point_to_world
+from fgslam.frontend.features import Feature
+
+DIM = {"line": 2, "corner": 3, "point": 2}
+ANGULAR = {"line": (True, False), "corner": (False, False, True), "point": (False, False)}
+
+
+def residual(
+    kind: str, pose: NDArray[np.float64], lm: NDArray[np.float64], z: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Prediction - measurement, and its Jacobians w.r.t. the robot's world (x, y, theta) and
+    the landmark's world parameters. A 2-vector z for a corner is a sonar (bearing, range)."""
+    if kind == "line":
+        return line_residual(pose, lm, z)
+    if kind == "corner":
+        if len(z) == 2:
+            e, Hx, Hl = corner_residual(pose, lm, (z[0], z[1], 0.0))
+            return e[:2], Hx[:2], Hl[:2]
+        return corner_residual(pose, lm, z)
+    return point_residual(pose, lm, z)
+
+
+def to_world(
+    kind: str, pose: NDArray[np.float64], z: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Landmark world parameters from a measurement at a pose, with Jacobians w.r.t. the
+    pose (world) and the measurement."""
+    if kind == "line":
+        return line_to_world(pose, z)
+    if kind == "corner":
+        return corner_to_world(pose, z)
+    return point_to_world(pose, z)
+
+
+def factor(kind: str, pose_key: int, lm_key: int, f: Feature) -> gtsam.NonlinearFactor:
+    """The GTSAM factor of a feature measured from pose ``pose_key`` of landmark ``lm_key``."""
+    noise = gtsam.noiseModel.Gaussian.Covariance(f.cov)
+    if kind == "line":
+        return line_factor(pose_key, lm_key, f.z, noise)
+    if kind == "corner":
+        if len(f.z) == 2:
+            return corner_bearing_range_factor(pose_key, lm_key, f.z, noise)
+        return corner_factor(pose_key, lm_key, f.z, noise)
+    return point_factor(pose_key, lm_key, f.z, f.cov)
+
+
+def value(kind: str, lm: NDArray[np.float64]) -> object:
+    """The GTSAM value of a landmark's world parameters."""
+    if kind == "corner":
+        return gtsam.Pose2(float(lm[0]), float(lm[1]), float(lm[2]))
+    return np.asarray(lm, dtype=float)
+
+
+def position(kind: str, lm: NDArray[np.float64]) -> NDArray[np.float64]:
+    """A representative world point of a landmark (lines: the foot of the normal)."""
+    if kind == "line":
+        return np.array([lm[1] * math.cos(lm[0]), lm[1] * math.sin(lm[0])])
+    return np.asarray(lm[:2], dtype=float)
+
+
+def normalize(kind: str, lm: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Canonical world parameters (line d >= 0, angles wrapped)."""
+    lm = np.array(lm, dtype=float)
+    if kind == "line":
+        if lm[1] < 0:
+            lm = np.array([lm[0] + math.pi, -lm[1]])
+        lm[0] = wrap_angle(lm[0])
+    elif kind == "corner":
+        lm[2] = wrap_angle(lm[2])
+    return lm
