@@ -53,7 +53,7 @@ def test_consistency_nees(room_results):
 def test_outputs(room_results, tmp_path):
     res = room_results[1]
     rep = write_outputs(res, tmp_path)
-    t, poses = evaluation.read_tum(tmp_path / "trajectory.tum")
+    _, poses = evaluation.read_tum(tmp_path / "trajectory.tum")
     np.testing.assert_allclose(poses[:, :2], res.poses[:, :2], atol=1e-5)
     np.testing.assert_allclose(np.cos(poses[:, 2] - res.poses[:, 2]), 1.0, atol=1e-8)
     lines = (tmp_path / "trajectory.tum").read_text().splitlines()
@@ -205,7 +205,7 @@ def test_merge_when_measurement_covers_both():
 def test_alignment_and_ate_by_hand():
     ref = np.array([[0, 0, 0], [1, 0, 0], [1, 1, math.pi / 2], [0, 1, math.pi]], float)
     est = evaluation.apply_se2(0.3, [1.0, -2.0], ref)
-    angle, t = evaluation.align_se2(est, ref)
+    angle, _ = evaluation.align_se2(est, ref)
     assert math.isclose(angle, -0.3, abs_tol=1e-12)
     a = evaluation.ate(est, ref)
     assert a["rmse"] < 1e-12 and a["heading_rmse_deg"] < 1e-9
@@ -214,5 +214,5 @@ def test_alignment_and_ate_by_hand():
     est2[2, 0] += 0.1
     a = evaluation.ate(est2, ref, align=False)
     assert math.isclose(a["rmse"], 0.05) and math.isclose(a["max"], 0.1)
-    n = evaluation.nees(ref + [0.1, 0, 0], np.array([np.eye(3) * 0.01] * 4), ref)
+    n = evaluation.nees(ref + np.array([0.1, 0, 0]), np.array([np.eye(3) * 0.01] * 4), ref)
     assert math.isclose(n["mean"], 1.0)
