@@ -216,8 +216,11 @@ class OdometryIntegrator:
     unchanged.
     """
 
-    def __init__(self, params: OdometryParams, t0: float | None = None) -> None:
+    def __init__(
+        self, params: OdometryParams, t0: float | None = None, covariance: bool = True
+    ) -> None:
         self.params = params
+        self.track_covariance = covariance  # False: pose and velocity only (cheaper)
         self.t: float | None = t0
         self.pose = np.zeros(3)  # world (x, y, th), th unwrapped
         self._rel = np.zeros(3)  # since the last keyframe, keyframe axes
@@ -234,9 +237,10 @@ class OdometryIntegrator:
             raise ValueError(f"negative odometry sample period: t={t} after t={self.t}")
         p = self.params
         D = p.wheelbase
-        F, G = step_jacobians(self._rel[2], lr, ll, D)
-        Q = np.diag((p.k_r**2 * lr * lr, p.k_l**2 * ll * ll, (p.k_d * D) ** 2))
-        self._P = F @ self._P @ F.T + G @ Q @ G.T
+        if self.track_covariance:
+            F, G = step_jacobians(self._rel[2], lr, ll, D)
+            Q = np.diag((p.k_r**2 * lr * lr, p.k_l**2 * ll * ll, (p.k_d * D) ** 2))
+            self._P = F @ self._P @ F.T + G @ Q @ G.T
         ds, dth = 0.5 * (lr + ll), (lr - ll) / D
         for state in (self._rel, self.pose):
             a = state[2] + 0.5 * dth

@@ -82,7 +82,9 @@ class FrontEnd:
         self.cfg, self.mode = cfg, mode
         self.p = params or FrontEndParams()
         o = cfg.odometry
-        self.odo = OdometryIntegrator(OdometryParams(o.wheelbase, o.k_r, o.k_l, o.k_d))
+        self.odo = OdometryIntegrator(
+            OdometryParams(o.wheelbase, o.k_r, o.k_l, o.k_d), covariance=False
+        )
         self.poses = PoseHistory(keep=4 * self.p.window)
         self.sonar = SonarBuffer(cfg)
         self._first_sonar_t: float | None = None

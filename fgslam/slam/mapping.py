@@ -34,6 +34,8 @@ class MapParams:
     small_step: float = 0.1  # ... toward an unreliable one
     max_range: float = 10.0  # landmarks farther than this are not association candidates
     sonar_line_gap: float = 1.0  # a sonar plane's foot point within this of a map line
+    # residuals beyond these (rad or m, per component) cannot pass any sensible gate
+    pregate: tuple[float, float, float] = (0.35, 1.0, 0.6)
 
 
 @dataclass
@@ -132,24 +134,38 @@ class MapManager:
         landmark each observes, which are new, and which map lines merge."""
         dec = Decisions()
         cands = self._candidates(pose, means_hint)
-        means, P = estimate(cands) if cands else ({}, np.zeros((3, 3)))
+        # cheap pre-gate on the residual alone, so that the joint covariance is asked for the
+        # few landmarks that may match (the backend's covariance query is the costly part)
+        pre: list[list[tuple[int, NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]]] = []
+        needed: set[int] = set()
+        for f in features:
+            rows = []
+            for lid in cands:
+                lm = self.landmarks[lid]
+                if lm.kind != f.kind:
+                    continue
+                e, Hx, Hl = models.residual(f.kind, pose, means_hint[lid], f.z)
+                if np.all(np.abs(e) < self.p.pregate[: len(e)]):
+                    rows.append((lid, e, Hx, Hl))
+                    needed.add(lid)
+            pre.append(rows)
+        ids = sorted(needed)
+        means, P = estimate(ids) if ids else ({}, np.zeros((3, 3)))
         offs, o = {}, 3
-        for lid in cands:
+        for lid in ids:
             offs[lid] = o
             o += models.DIM[self.landmarks[lid].kind]
         Pxx = P[:3, :3]
-        observed: set[int] = set()
-        for f in features:
+        for f, rows in zip(features, pre, strict=True):
             dim = len(f.z)
             gate, amb = CHI2_99[dim], CHI2_9999[dim]
             hits: list[tuple[float, int, float]] = []  # (d2, lid, overlap)
             near_miss = False
-            for lid in cands:
+            for lid, e, Hx, Hl in rows:
                 lm = self.landmarks[lid]
-                if lm.kind != f.kind or lm.merged_into is not None:
+                if lm.merged_into is not None:
                     continue
                 m = means[lid]
-                e, Hx, Hl = models.residual(f.kind, pose, m, f.z)
                 k = offs[lid]
                 n = models.DIM[lm.kind]
                 Pxl = P[:3, k : k + n]
@@ -197,7 +213,6 @@ class MapManager:
                             dec.stats["line_merges"] += 1
                     best = keep
             dec.observe.append((best, f))
-            observed.add(best)
             dec.stats[f"{f.kind}s_associated"] += 1
         return dec
 
