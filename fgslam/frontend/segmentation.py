@@ -43,35 +43,6 @@ class Segment:
         return self.last - self.first + 1
 
 
-class _Tls:
-    """Running sums for the total-least-squares line through a growing set of points."""
-
-    def __init__(self) -> None:
-        self.n = 0
-        self.sx = self.sy = self.sxx = self.syy = self.sxy = 0.0
-
-    def add(self, x: float, y: float) -> None:
-        self.n += 1
-        self.sx += x
-        self.sy += y
-        self.sxx += x * x
-        self.syy += y * y
-        self.sxy += x * y
-
-    def line(self) -> tuple[float, float, float]:
-        """(alpha, d, variance of the perpendicular distances)."""
-        n = self.n
-        mx, my = self.sx / n, self.sy / n
-        cxx = self.sxx / n - mx * mx
-        cyy = self.syy / n - my * my
-        cxy = self.sxy / n - mx * my
-        alpha = 0.5 * math.atan2(-2 * cxy, cyy - cxx)
-        # smallest eigenvalue of the covariance: the mean squared perpendicular distance
-        tr, det = cxx + cyy, cxx * cyy - cxy * cxy
-        var = max(0.5 * tr - math.sqrt(max(0.25 * tr * tr - det, 0.0)), 0.0)
-        return alpha, mx * math.cos(alpha) + my * math.sin(alpha), var
-
-
 def segment_scan(
     phi: NDArray[np.float64],
     r: NDArray[np.float64],
@@ -104,9 +75,11 @@ def segment_scan(
             prev_end = End.MAX_RANGE
             i += 1
             continue
-        tls = _Tls()
-        tls.add(xs[i], ys[i])
-        line = None  # (cos, sin, d) of the line through the points so far (3 or more)
+        # running sums of the total-least-squares line through the points so far
+        cnt, sx, sy = 1, xs[i], ys[i]
+        sxx, syy, sxy = sx * sx, sy * sy, sx * sy
+        have_line = False  # a line (lc, ls, ld) through 3 or more points exists
+        lc = ls = ld = 0.0
         j = i + 1
         end, cl = End.FIELD_OF_VIEW, None
         stop_at = -1  # index of the point nearest to the sonar cluster ahead
@@ -121,31 +94,50 @@ def segment_scan(
                 end = End.DISCONTINUITY
                 break
             if stop_at < 0 and near[j] >= 0 and near[j] != near[i]:
-                stop_at = j
-                while (
-                    stop_at + 1 < n
-                    and near[stop_at + 1] == near[j]
-                    and (ndist[stop_at + 1] < ndist[stop_at])
-                ):
-                    stop_at += 1
+                # the point nearest to the cluster among the run of points near it (not the
+                # first local minimum: range noise and quantisation make the distances bumpy)
+                stop_at = k = j
+                while k + 1 < n and near[k + 1] == near[j]:
+                    k += 1
+                    if ndist[k] < ndist[stop_at]:
+                        stop_at = k
                 if stop_at == j:
                     end, cl = End.SONAR, near[j]
                     break
-            if line is not None and j + 3 <= n:
-                c, s_, d = line
-                if all(
-                    valid[k] and abs(xs[k] * c + ys[k] * s_ - d) > outlier
-                    for k in (j, j + 1, j + 2)
-                ):
-                    end = End.OUTLIERS
-                    break
-            tls.add(xs[j], ys[j])
-            if tls.n >= 3:
-                alpha, d, var = tls.line()
+            x, y = xs[j], ys[j]
+            if (
+                have_line
+                and j + 3 <= n
+                and valid[j]
+                and abs(x * lc + y * ls - ld) > outlier
+                and valid[j + 1]
+                and abs(xs[j + 1] * lc + ys[j + 1] * ls - ld) > outlier
+                and valid[j + 2]
+                and abs(xs[j + 2] * lc + ys[j + 2] * ls - ld) > outlier
+            ):
+                end = End.OUTLIERS
+                break
+            cnt += 1
+            sx += x
+            sy += y
+            sxx += x * x
+            syy += y * y
+            sxy += x * y
+            if cnt >= 3:
+                mx, my = sx / cnt, sy / cnt
+                cxx = sxx / cnt - mx * mx
+                cyy = syy / cnt - my * my
+                cxy = sxy / cnt - mx * my
+                # smallest eigenvalue of the covariance: the mean squared perpendicular distance
+                tr, det = cxx + cyy, cxx * cyy - cxy * cxy
+                var = max(0.5 * tr - math.sqrt(max(0.25 * tr * tr - det, 0.0)), 0.0)
                 if var > spread2:
                     end = End.SPREAD
                     break
-                line = (math.cos(alpha), math.sin(alpha), d)
+                alpha = 0.5 * math.atan2(-2 * cxy, cyy - cxx)
+                lc, ls = math.cos(alpha), math.sin(alpha)
+                ld = mx * lc + my * ls
+                have_line = True
             j += 1
         seg = Segment(i, j - 1, prev_end, end, cl)
         if seg.n > params.min_points:

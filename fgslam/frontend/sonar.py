@@ -12,8 +12,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from fgslam.config import RobotConfig
@@ -24,29 +22,36 @@ KIND_CODE = {k: i for i, k in enumerate(SONAR_KINDS)}  # plane 0, corner 1, edge
 
 class PoseHistory:
     """Odometry poses (world_odo frame: x, y in m, theta in rad, unwrapped) by time (s),
-    for moving sonar readings between times; kept for ``keep`` seconds."""
+    for moving sonar readings between times; kept for ``keep`` seconds.
+
+    Stored in growing arrays (amortised doubling) so that :meth:`at` needs no conversion."""
 
     def __init__(self, keep: float = 20.0) -> None:
         self.keep = keep
-        self._t: list[float] = []
-        self._p: list[tuple[float, float, float]] = []
-        self._arr: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
+        self._t = np.empty(1024)
+        self._p = np.empty((1024, 3))
+        self._lo = self._hi = 0  # the poses kept are rows lo..hi-1
 
     def add(self, t: float, pose: NDArray[np.float64]) -> None:
-        self._t.append(t)
-        self._p.append((float(pose[0]), float(pose[1]), float(pose[2])))
-        self._arr = None
-        if len(self._t) > 4096 and self._t[-1] - self._t[0] > 2 * self.keep:
-            cut = int(np.searchsorted(self._t, self._t[-1] - self.keep))
-            del self._t[:cut], self._p[:cut]
+        if self._hi == len(self._t):
+            n = self._hi - self._lo
+            cap = max(1024, 2 * n)
+            t_new, p_new = np.empty(cap), np.empty((cap, 3))
+            t_new[:n], p_new[:n] = self._t[self._lo : self._hi], self._p[self._lo : self._hi]
+            self._t, self._p, self._lo, self._hi = t_new, p_new, 0, n
+        self._t[self._hi] = t
+        self._p[self._hi] = (float(pose[0]), float(pose[1]), float(pose[2]))
+        self._hi += 1
+        ts = self._t
+        if self._hi - self._lo > 4096 and ts[self._hi - 1] - ts[self._lo] > 2 * self.keep:
+            cut = int(np.searchsorted(ts[self._lo : self._hi], ts[self._hi - 1] - self.keep))
+            self._lo += cut
 
     def at(self, t: NDArray[np.float64] | float) -> NDArray[np.float64]:
         """Poses at times t, linearly interpolated (clamped at the ends); shape (..., 3)."""
-        if not self._t:
+        if self._hi == self._lo:
             return np.zeros((*np.shape(t), 3))
-        if self._arr is None:
-            self._arr = (np.array(self._t), np.array(self._p))
-        ts, ps = self._arr
+        ts, ps = self._t[self._lo : self._hi], self._p[self._lo : self._hi]
         t = np.asarray(t, dtype=float)
         out = np.empty((*t.shape, 3))
         for k in range(3):
@@ -55,7 +60,7 @@ class PoseHistory:
 
     @property
     def last_time(self) -> float:
-        return self._t[-1] if self._t else -math.inf
+        return float(self._t[self._hi - 1]) if self._hi > self._lo else -math.inf
 
 
 class SonarBuffer:
@@ -63,45 +68,49 @@ class SonarBuffer:
 
     Row fields: time (s), reading id, kind code, range (m), bearing (rad, transducer frame),
     and the transducer's pose on the robot (mount x, y in m; mount yaw + pan in rad).
+    New rows are collected in a list and appended to the array when a window is asked for.
     """
 
     def __init__(self, cfg: RobotConfig) -> None:
         self.arrays = [
             (a.mount.x, a.mount.y, math.radians(a.mount.yaw_deg)) for a in cfg.sonar.arrays
         ]
-        self.readings: dict[int, SonarReading] = {}
-        self._rows: list[tuple[float, int, int, float, float, float, float, float]] = []
-        self._arr: NDArray[np.float64] | None = None
+        self.readings: dict[int, SonarReading] = {}  # readings with echoes, by id
+        self._new: list[tuple[float, int, int, float, float, float, float, float]] = []
+        self._arr: NDArray[np.float64] = np.empty((0, 8))
         self._next_id = 0
 
     def add(self, rd: SonarReading) -> None:
         rid = self._next_id
         self._next_id += 1
+        if not rd.echoes:
+            return
         self.readings[rid] = rd
         mx, my, myaw = self.arrays[rd.array]
         for e in rd.echoes:
-            self._rows.append(
+            self._new.append(
                 (rd.t, rid, KIND_CODE[e.kind], e.range, e.bearing, mx, my, myaw + rd.pan)
             )
-        self._arr = None
+
+    def _rows(self) -> NDArray[np.float64]:
+        if self._new:
+            self._arr = np.concatenate([self._arr, np.array(self._new, dtype=float)])
+            self._new = []
+        return self._arr
 
     def drop_before(self, t: float) -> None:
-        """Forget echoes older than t."""
-        if self._rows and self._rows[0][0] < t:
-            k = 0
-            while k < len(self._rows) and self._rows[k][0] < t:
-                k += 1
-            gone = {row[1] for row in self._rows[:k]}
-            del self._rows[:k]
-            for rid in gone:
+        """Forget the echoes (in arrival order) before the first one at or after time t."""
+        a = self._rows()
+        if len(a) and a[0, 0] < t:
+            later = a[:, 0] >= t
+            k = int(np.argmax(later)) if later.any() else len(a)
+            for rid in np.unique(a[:k, 1]).astype(int).tolist():
                 self.readings.pop(rid, None)
-            self._arr = None
+            self._arr = a[k:]
 
     def window(self, t0: float, t1: float) -> NDArray[np.float64]:
         """Rows with t0 <= t <= t1, shape (N, 8)."""
-        if self._arr is None:
-            self._arr = np.array(self._rows, dtype=float).reshape(-1, 8)
-        a = self._arr
+        a = self._rows()
         lo = int(np.searchsorted(a[:, 0], t0, side="left"))
         hi = int(np.searchsorted(a[:, 0], t1, side="right"))
         return a[lo:hi]
@@ -222,19 +231,37 @@ class Cluster:
         return int(np.argmax(self.counts))
 
 
+def _components(n: int, pairs: NDArray[np.intp]) -> NDArray[np.intp]:
+    """Connected components of n nodes linked by ``pairs`` (K, 2): each node's label is the
+    smallest node index of its component (min-label propagation with pointer jumping)."""
+    lab = np.arange(n)
+    if len(pairs) == 0:
+        return lab
+    a, b = pairs[:, 0], pairs[:, 1]
+    while True:
+        m = np.minimum(lab[a], lab[b])
+        new = lab.copy()
+        np.minimum.at(new, a, m)
+        np.minimum.at(new, b, m)
+        new = new[new]  # a label is a node of the same component with a smaller index
+        if np.array_equal(new, lab):
+            return lab
+        lab = new
+
+
 def cluster(pts: SonarPoints, radius: float, kinds: tuple[int, ...] = (1, 2)) -> list[Cluster]:
-    """Single-linkage clusters (link distance ``radius`` m) of the echoes of the given kinds."""
+    """Single-linkage clusters (link distance ``radius`` m) of the echoes of the given kinds,
+    ordered by their first echo."""
     idx = np.flatnonzero(np.isin(pts.kind, kinds))
     if idx.size == 0:
         return []
     xy = pts.xy[idx]
     pairs = cKDTree(xy).query_pairs(radius, output_type="ndarray")
-    n = idx.size
-    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
-    ncomp, labels = connected_components(graph, directed=False)
+    labels = _components(idx.size, pairs)
+    order = np.argsort(labels, kind="stable")
+    starts = np.flatnonzero(np.diff(labels[order], prepend=-1))
     out = []
-    for c in range(ncomp):
-        m = idx[labels == c]
+    for m in np.split(idx[order], starts[1:]):
         counts = np.bincount(pts.kind[m], minlength=3)
         out.append(Cluster(m, pts.xy[m].mean(axis=0), counts))
     return out

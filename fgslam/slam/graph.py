@@ -228,6 +228,7 @@ class GraphBackend(Backend):
             for _ in range(2):  # let the last relinearisations settle
                 self.isam.update()
             self._est = self.isam.calculateEstimate()
+            self._marg = None
         covs = self._pose_covariances()
         out = []
         for k, t in enumerate(self.times):
@@ -235,9 +236,9 @@ class GraphBackend(Backend):
             out.append((t, np.array([p.x(), p.y(), p.theta()]), covs[k] if covs else None))
         return out
 
-    def _marginals(self):
-        if not self.batch:
-            return None
+    def _marginals(self) -> gtsam.Marginals:
+        """Marginals of the final estimate: one factorisation of the whole graph, far cheaper
+        than asking iSAM2 for thousands of marginals one at a time."""
         if getattr(self, "_marg", None) is None:
             self._marg = gtsam.Marginals(self.graph, self._est)
         return self._marg
@@ -245,16 +246,22 @@ class GraphBackend(Backend):
     def _pose_covariances(self) -> list[NDArray[np.float64]] | None:
         if not self.covariances:
             return None
-        m = self._marginals()
+        try:
+            m = self._marginals()
+        except RuntimeError:  # an ill-conditioned final graph: report no covariances
+            return None
         out = []
         for k in range(len(self.times)):
-            C = m.marginalCovariance(X(k)) if m is not None else self.isam.marginalCovariance(X(k))
+            C = m.marginalCovariance(X(k))
             R = _rot_block(self._est.atPose2(X(k)).theta())
             out.append(R @ C @ R.T)
         return out
 
     def landmark_covariances(self) -> dict[int, NDArray[np.float64]]:
-        m = self._marginals()
+        try:
+            m = self._marginals()
+        except RuntimeError:
+            return {}
         out = {}
         for lid, kind in self.kinds.items():
             if not self._est.exists(L(lid)):

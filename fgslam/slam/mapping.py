@@ -136,7 +136,9 @@ class MapManager:
         cands = self._candidates(pose, means_hint)
         # cheap pre-gate on the residual alone, so that the joint covariance is asked for the
         # few landmarks that may match (the backend's covariance query is the costly part)
-        pre: list[list[tuple[int, NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]]] = []
+        pre: list[
+            list[tuple[int, NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]]
+        ] = []
         needed: set[int] = set()
         for f in features:
             rows = []

@@ -58,6 +58,7 @@ class SlamResult:
     log_duration: float
     stats: Counter = field(default_factory=Counter)
     batch_seconds: float = 0.0
+    landmark_counts: list[int] = field(default_factory=list)  # landmarks after each keyframe
 
     @property
     def has_truth(self) -> bool:
@@ -73,6 +74,7 @@ class _Session:
         self.stats: Counter = Counter()
         self.latencies: list[float] = []
         self.filtered: list[NDArray[np.float64]] = []
+        self.landmark_counts: list[int] = []
         self.started = False
         self.wall = 0.0
 
@@ -96,6 +98,7 @@ class _Session:
         self.stats.update(dec.stats)
         self.filtered.append(be.pose())
         dt = time.perf_counter() - t0
+        self.landmark_counts.append(len(mapper.landmarks))
         self.latencies.append(dt)
         self.wall += dt
 
@@ -306,6 +309,7 @@ def _result(
         log_duration=(last_t - first_t) if first_t is not None else 0.0,
         stats=st,
         batch_seconds=getattr(sess.be, "batch_seconds", 0.0) if name == "batch" else 0.0,
+        landmark_counts=list(sess.landmark_counts),
     )
 
 

@@ -1,0 +1,135 @@
+"""The paper's experiment over many seeds: the simulated corridor run with every backend (EKF,
+iSAM2, batch) and sensor mode (fused, laser only, sonar only).
+
+Run: python experiments/paper_corridor.py [--seeds 10] [--workers 2]
+Prints a table of means over seeds (ATE RMSE, maximum error, final error, NEES, landmarks,
+time) and the share of seeds in which the run "kept track" (maximum position error below
+0.5 m); writes experiments/paper_corridor.png and the per-seed reports to
+experiments/out/paper_corridor.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+
+from fgslam import evaluation
+from fgslam.config import load_config
+from fgslam.logfile import LogReader
+from fgslam.sim import simulate_to_log
+from fgslam.sim.world import load_world
+from fgslam.slam.outputs import report_dict
+from fgslam.slam.runner import BACKENDS, SENSORS, run_backends
+
+HERE = Path(__file__).resolve().parent
+KEPT_TRACK = 0.5  # m of maximum position error
+
+
+def one_seed(seed: int) -> list[dict]:
+    with tempfile.TemporaryDirectory() as d:
+        log = Path(d) / "run.log.gz"
+        simulate_to_log(load_world("corridor"), load_config(), log, seed)
+        reader = LogReader(log)
+        true_map = reader.meta["true_map"]
+        rows = []
+        for sensors in SENSORS:
+            for res in run_backends(LogReader(log), reader.config, list(BACKENDS), sensors):
+                rep = report_dict(res, true_map)
+                rep["seed"] = seed
+                ref = evaluation.interpolate_poses(res.truth_t, res.truth, res.times)
+                err = evaluation.position_errors(res.poses, ref, align=False)
+                rep["error_curve"] = [res.times.tolist()[::10], err.tolist()[::10]]
+                rows.append(rep)
+        return rows
+
+
+def summarise(rows: list[dict]) -> str:
+    out = [
+        "| backend | sensors | kept track | ATE RMSE (m) | max error (m) | final error (m) | "
+        "NEES (3 dof) | landmarks | line / corner / point | real-time factor |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for sensors in SENSORS:
+        for backend in BACKENDS:
+            rs = [r for r in rows if r["backend"] == backend and r["sensors"] == sensors]
+            if not rs:
+                continue
+            ate = np.array([r["ate"]["rmse"] for r in rs])
+            mx = np.array([r["ate"]["max"] for r in rs])
+            fin = np.array([r["final_pose_error"]["position_m"] for r in rs])
+            nees = np.array([r.get("nees", {}).get("mean", np.nan) for r in rs])
+            lm = np.array([r["landmarks_total"] for r in rs])
+            kinds = [
+                np.mean([r["landmarks"].get(k, 0) for r in rs]) for k in ("line", "corner", "point")
+            ]
+            rt = np.array([r["realtime_factor"] for r in rs])
+            kept = np.mean(mx < KEPT_TRACK)
+            out.append(
+                f"| {backend} | {sensors} | {kept:.0%} | {ate.mean():.3f} +- {ate.std():.3f} | "
+                f"{mx.mean():.3f} (worst {mx.max():.2f}) | {fin.mean():.3f} | "
+                f"{np.nanmedian(nees):.1f} | {lm.mean():.0f} | "
+                f"{kinds[0]:.0f} / {kinds[1]:.0f} / {kinds[2]:.0f} | {rt.mean():.1f} |"
+            )
+    odo = np.array(
+        [
+            r["ate_odometry"]["rmse"]
+            for r in rows
+            if r["backend"] == "ekf" and r["sensors"] == "fused"
+        ]
+    )
+    out.append(
+        f"\nOdometry alone: ATE RMSE {odo.mean():.2f} +- {odo.std():.2f} m over {odo.size} "
+        "seeds. NEES: median over seeds of the mean pose NEES."
+    )
+    return "\n".join(out)
+
+
+def plot(rows: list[dict], path: Path) -> None:
+    fig, axs = plt.subplots(1, 3, figsize=(15, 4.5), sharey=True)
+    colors = {"ekf": "tab:red", "isam2": "tab:blue", "batch": "tab:green"}
+    for ax, sensors in zip(axs, SENSORS, strict=True):
+        for r in rows:
+            if r["sensors"] != sensors:
+                continue
+            t, e = r["error_curve"]
+            ax.plot(t, e, "-", lw=0.6, alpha=0.7, color=colors[r["backend"]])
+        for b, c in colors.items():
+            ax.plot([], [], color=c, label=b)
+        ax.set_yscale("log")
+        ax.set_title(f"{sensors}: position error over the run, every seed")
+        ax.set_xlabel("time (s)")
+        ax.axhline(KEPT_TRACK, color="k", lw=0.5, ls="--")
+    axs[0].set_ylabel("position error (m)")
+    axs[0].legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", type=int, default=10)
+    ap.add_argument("--workers", type=int, default=2)
+    args = ap.parse_args()
+    rows: list[dict] = []
+    with ProcessPoolExecutor(max_workers=args.workers) as pool:
+        for rs in pool.map(one_seed, range(args.seeds)):
+            rows.extend(rs)
+            print(f"seed {rs[0]['seed']} done", flush=True)
+    (HERE / "out").mkdir(exist_ok=True)
+    (HERE / "out" / "paper_corridor.json").write_text(json.dumps(rows))
+    print(summarise(rows))
+    plot(rows, HERE / "paper_corridor.png")
+
+
+if __name__ == "__main__":
+    main()
