@@ -64,8 +64,7 @@ class EkfBackend(Backend):
 
     def means(self) -> dict[int, NDArray[np.float64]]:
         return {
-            lid: models.normalize(kind, self.x[o : o + models.DIM[kind]])
-            for lid, (o, kind) in self.index.items()
+            lid: self.x[o : o + models.DIM[kind]].copy() for lid, (o, kind) in self.index.items()
         }
 
     def _update(

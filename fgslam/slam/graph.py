@@ -76,8 +76,8 @@ class GraphBackend(Backend):
         self.batch = False
         self.covariances = covariances
         params = gtsam.ISAM2Params()
-        params.setRelinearizeThreshold(0.05)
-        params.relinearizeSkip = 1
+        params.setRelinearizeThreshold(0.1)
+        params.relinearizeSkip = 10
         self.isam = gtsam.ISAM2(params)
         self.graph = gtsam.NonlinearFactorGraph()  # everything, for batch and for reports
         self.new_graph = gtsam.NonlinearFactorGraph()
@@ -88,7 +88,11 @@ class GraphBackend(Backend):
         self._pose_pred = np.zeros(3)
         self._pre: Preintegrated | None = None
         self._est = gtsam.Values()
+        self._means: dict[int, NDArray[np.float64]] = {}
+        self._touched: set[int] = set()
+        self._prev = gtsam.Pose2()
         self.batch_seconds = 0.0
+        self.batch_iterations = 0
 
     # ------------------------------------------------------------------ keyframes
 
@@ -106,7 +110,7 @@ class GraphBackend(Backend):
         self._pending_t = t
 
     def predict(self, t: float, pre: Preintegrated) -> None:
-        prev = self._est.atPose2(X(self.k))
+        prev = self._prev = self.isam.calculateEstimatePose2(X(self.k))
         self.k += 1
         self.times.append(t)
         pred = prev.compose(pre.delta)
@@ -119,27 +123,29 @@ class GraphBackend(Backend):
     def pose(self) -> NDArray[np.float64]:
         return self._pose_pred.copy()
 
-    def _mean(self, lid: int) -> NDArray[np.float64]:
+    def _mean(self, lid: int, fresh: bool = False) -> NDArray[np.float64]:
+        """A landmark's mean: from the cached estimate, or (``fresh``) solved for now."""
         key, kind = L(lid), self.kinds[lid]
         if kind == "corner":
-            p = self._est.atPose2(key)
+            p = self.isam.calculateEstimatePose2(key) if fresh else self._est.atPose2(key)
             return np.array([p.x(), p.y(), p.theta()])
-        return np.array(self._est.atVector(key))
+        return np.array(
+            self.isam.calculateEstimateVector(key) if fresh else self._est.atVector(key)
+        )
 
     def means(self) -> dict[int, NDArray[np.float64]]:
-        return {
-            lid: models.normalize(kind, self._mean(lid))
-            for lid, kind in self.kinds.items()
-            if self._est.exists(L(lid))
-        }
+        return self._means
+
+    def _refresh_means(self) -> None:
+        self._means = {lid: self._mean(lid) for lid in self.kinds if self._est.exists(L(lid))}
 
     def estimate(self, lids: list[int]) -> Estimate:
         """Means and world-frame joint covariance of [predicted pose, landmarks]."""
-        means = {lid: self._mean(lid) for lid in lids}
+        means = {lid: self._mean(lid, fresh=True) for lid in lids}
         keys = [X(self.k - 1)] + [L(lid) for lid in lids]
         J = self.isam.jointMarginalCovariance(keys).fullMatrix()
         # tangent (body) -> world for Pose2 blocks
-        prev = self._est.atPose2(X(self.k - 1))
+        prev = self._prev
         blocks = [_rot_block(prev.theta())]
         for lid in lids:
             n = models.DIM[self.kinds[lid]]
@@ -162,9 +168,11 @@ class GraphBackend(Backend):
 
     def observe(self, lid: int, f: Feature) -> None:
         self.new_graph.add(models.factor(self.kinds[lid], X(self.k), L(lid), f))
+        self._touched.add(lid)
 
     def add_landmark(self, lid: int, f: Feature) -> None:
         self.kinds[lid] = f.kind
+        self._touched.add(lid)
         lm, _, _ = models.to_world(f.kind, self._pose_pred, f.z)
         self.new_values.insert(L(lid), models.value(f.kind, lm))
         self.new_graph.add(models.factor(f.kind, X(self.k), L(lid), f))
@@ -198,8 +206,16 @@ class GraphBackend(Backend):
         # start a new empty graph: re-adding factors would silently double information
         self.new_graph = gtsam.NonlinearFactorGraph()
         self.new_values = gtsam.Values()
-        self._est = self.isam.calculateEstimate()
-        p = self._est.atPose2(X(self.k))
+        # the whole estimate (for the candidate search) every few keyframes; in between, the
+        # landmarks this keyframe touched; association re-solves its candidates exactly
+        if self.k % 10 == 0:
+            self._est = self.isam.calculateEstimate()
+            self._refresh_means()
+        else:
+            for lid in self._touched:
+                self._means[lid] = self._mean(lid, fresh=True)
+        self._touched = set()
+        p = self.isam.calculateEstimatePose2(X(self.k))
         self._pose_pred = np.array([p.x(), p.y(), p.theta()])
         self.trajectory.append((self._pending_t, self._pose_pred.copy(), None))
 
@@ -209,16 +225,18 @@ class GraphBackend(Backend):
         """Solve the whole graph by Levenberg-Marquardt from the incremental estimate; from
         then on, results (trajectory, means, covariances) are the batch solution."""
         t0 = time.perf_counter()
-        params = gtsam.LevenbergMarquardtParams()
-        params.setMaxIterations(100)
-        params.setRelativeErrorTol(1e-6)
+        dims = {X(k): 3 for k in range(len(self.times))}
+        dims.update({L(lid): models.DIM[kind] for lid, kind in self.kinds.items()})
         try:
-            self._est = gtsam.LevenbergMarquardtOptimizer(self.graph, self._est, params).optimize()
+            self._est, self.batch_iterations = levenberg_marquardt(
+                self.graph, self.isam.calculateEstimate(), dims
+            )
         except RuntimeError as exc:
             raise BackendError(f"batch optimisation failed: {str(exc).splitlines()[0]}") from None
         self.batch = True
         self.name = "batch"
         self._marg = None
+        self._refresh_means()
         self.batch_seconds = time.perf_counter() - t0
 
     def finish(self) -> list[tuple[float, NDArray[np.float64], NDArray[np.float64] | None]]:
@@ -229,6 +247,7 @@ class GraphBackend(Backend):
                 self.isam.update()
             self._est = self.isam.calculateEstimate()
             self._marg = None
+            self._refresh_means()
         covs = self._pose_covariances()
         out = []
         for k, t in enumerate(self.times):
@@ -276,6 +295,45 @@ class GraphBackend(Backend):
                 C = R @ C @ R.T
             out[lid] = C
         return out
+
+
+def levenberg_marquardt(
+    graph: gtsam.NonlinearFactorGraph,
+    values: gtsam.Values,
+    dims: dict[int, int],
+    max_iterations: int = 30,
+    rel_tol: float = 1e-6,
+) -> tuple[gtsam.Values, int]:
+    """Levenberg-Marquardt with identity damping (lambda I on every variable's tangent),
+    solved by GTSAM's sparse elimination. (GTSAM's own optimizer classes spend far longer per
+    iteration on graphs of Python ``CustomFactor``s than one linearisation and one solve do.)
+    Returns the solution and the number of iterations."""
+    lam = 1e-5
+    err = graph.error(values)
+    it = 0
+    for it in range(1, max_iterations + 1):  # noqa: B007 - returned
+        lin = graph.linearize(values)
+        improved = False
+        while lam < 1e10:
+            damped = gtsam.GaussianFactorGraph()
+            damped.push_back(lin)
+            s = math.sqrt(lam)
+            for key, n in dims.items():
+                damped.add(key, s * np.eye(n), np.zeros(n), gtsam.noiseModel.Unit.Create(n))
+            new = values.retract(damped.optimize())
+            new_err = graph.error(new)
+            if new_err <= err:
+                improved = True
+                break
+            lam *= 10.0
+        if not improved:
+            break
+        rel = (err - new_err) / max(err, 1e-300)
+        values, err = new, new_err
+        lam = max(lam / 10.0, 1e-12)
+        if rel < rel_tol:
+            break
+    return values, it
 
 
 def _blockdiag(blocks: list[NDArray[np.float64]]) -> NDArray[np.float64]:

@@ -108,19 +108,30 @@ class MapManager:
     # -------------------------------------------------------------- association
 
     def _candidates(self, pose, means_hint: dict[int, NDArray[np.float64]]) -> list[int]:
-        out = []
+        """Active landmarks within ``max_range`` of the robot (lines: of their segment)."""
+        ids, a, b = [], [], []
         for lid, lm in self.landmarks.items():
             if not lm.active or lid not in means_hint:
                 continue
             m = means_hint[lid]
             if lm.kind == "line" and lm.extent is not None:
-                ends = line_endpoints(m, lm.extent)
-                d = _point_segment(pose[:2], ends)
+                e = line_endpoints(m, lm.extent)
+                a.append(e[0])
+                b.append(e[1])
             else:
-                d = float(np.hypot(*(models.position(lm.kind, m) - pose[:2])))
-            if d < self.p.max_range:
-                out.append(lid)
-        return out
+                p = models.position(lm.kind, m)
+                a.append(p)
+                b.append(p)
+            ids.append(lid)
+        if not ids:
+            return []
+        A, B = np.array(a), np.array(b)
+        ab = B - A
+        t = np.clip(
+            np.sum((pose[:2] - A) * ab, axis=1) / np.maximum(np.sum(ab * ab, axis=1), 1e-12), 0, 1
+        )
+        d = np.hypot(*(pose[:2] - A - t[:, None] * ab).T)
+        return [lid for lid, di in zip(ids, d, strict=True) if di < self.p.max_range]
 
     def associate(
         self,

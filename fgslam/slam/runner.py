@@ -20,6 +20,7 @@ from factors.odometry import OdometryParams, integrate_poses, preintegrate
 from fgslam.config import RobotConfig
 from fgslam.events import Event, OdometryEvent, TruthPose
 from fgslam.frontend.pipeline import FrontEnd
+from fgslam.slam import models
 from fgslam.slam.backend import Backend
 from fgslam.slam.ekf import EkfBackend
 from fgslam.slam.graph import GraphBackend
@@ -282,7 +283,10 @@ def _result(
 ) -> SlamResult:
     t0 = time.perf_counter()
     traj = sess.be.finish()
-    means = sess.be.means()
+    means = {
+        lid: models.normalize(sess.mapper.landmarks[lid].kind, m)
+        for lid, m in sess.be.means().items()
+    }
     covs = sess.be.landmark_covariances()
     finish = time.perf_counter() - t0 + finish_wall
     st = Counter(stats)
