@@ -103,12 +103,6 @@ def test_sonar_cluster_ends_line_and_too_few_points_rejected():
     assert segs[1].start is End.SONAR
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="segment_scan stops at the first local minimum of the distance to the cluster, not "
-    "at the nearest point (experiments/README.md, Fig. 4); the fix changes the EKF pose NEES "
-    "of tests/test_slam.py::test_consistency_nees from 13.7 to 18.3 (bound 15)",
-)
 def test_sonar_end_at_the_nearest_point_despite_bumpy_distances():
     # distances to the cluster along the run of points near it have a local minimum (range
     # noise, quantisation) before the nearest point: the line should end at the nearest point

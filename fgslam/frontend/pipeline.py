@@ -94,6 +94,7 @@ class FrontEnd:
         m = cfg.laser.mount
         self.mount = (m.x, m.y, math.radians(m.yaw_deg))
         self.half_slot = 0.5 * cfg.laser.scan_period
+        self.mean_delay = 0.5 * (cfg.laser.delay_min + cfg.laser.delay_max)
         self._last_scan_t = -math.inf
         self._next_sonar_step: float | None = None
         self._saw_laser = False
@@ -114,6 +115,9 @@ class FrontEnd:
             self.poses.add(ev.t, self.odo.pose)
         elif isinstance(ev, LaserScan):
             self._saw_laser = True
+            # time registration (DESIGN 3.4): the host stamp is late by the transmission
+            # delay; take off its known mean, the spread is covered by the inflation
+            ev = LaserScan(ev.t - self.mean_delay, ev.ranges)
             if self.poses.last_time == -math.inf:
                 self.poses.add(ev.t, self.odo.pose)
             v, w = self.odo.velocity

@@ -94,13 +94,13 @@ def segment_scan(
                 end = End.DISCONTINUITY
                 break
             if stop_at < 0 and near[j] >= 0 and near[j] != near[i]:
-                stop_at = j
-                while (
-                    stop_at + 1 < n
-                    and near[stop_at + 1] == near[j]
-                    and (ndist[stop_at + 1] < ndist[stop_at])
-                ):
-                    stop_at += 1
+                # the point nearest to the cluster among the run of points near it (not the
+                # first local minimum: range noise and quantisation make the distances bumpy)
+                stop_at = k = j
+                while k + 1 < n and near[k + 1] == near[j]:
+                    k += 1
+                    if ndist[k] < ndist[stop_at]:
+                        stop_at = k
                 if stop_at == j:
                     end, cl = End.SONAR, near[j]
                     break

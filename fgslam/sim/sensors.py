@@ -29,7 +29,8 @@ class SimParams:
     radius_error_left: float = 0.005
     wheelbase_error: float = 0.005
     # laser (true): random sigma (m), range-dependent systematic error, mixed pixels
-    laser_sigma: float = 0.01
+    # 1.38 cm Gaussian + the 5 cm quantisation (1.44 cm) = the configured 2 cm random error
+    laser_sigma: float = 0.0138
     laser_sys_offset: float = 0.008
     laser_sys_per_metre: float = 0.0015
     mixed_pixel_prob: float = 0.6

@@ -1,0 +1,52 @@
+"""`fgslam run` and `fgslam compare` from the command line, on a short simulated log."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from fgslam.cli import main
+
+
+@pytest.fixture(scope="module")
+def short_log(tmp_path_factory):
+    d = tmp_path_factory.mktemp("log")
+    log = d / "short.log.gz"
+    assert main(["simulate", "--seed", "2", "--duration", "25", "--out", str(log)]) == 0
+    return log
+
+
+def test_run_writes_outputs(short_log, tmp_path, capsys):
+    out = tmp_path / "run"
+    assert (
+        main(["run", str(short_log), "--backend", "ekf", "--sensors", "fused", "--out", str(out)])
+        == 0
+    )
+    for name in ("trajectory.tum", "map.json", "report.json", "map.png"):
+        assert (out / name).stat().st_size > 0
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["backend"] == "ekf" and rep["sensors"] == "fused" and "ate" in rep
+    assert rep["ate"]["rmse"] < rep["ate_odometry"]["rmse"] + 0.02
+    assert "ATE RMSE" in capsys.readouterr().out
+
+
+def test_compare_writes_table_and_figure(short_log, tmp_path, capsys):
+    out = tmp_path / "cmp"
+    assert main(["compare", str(short_log), "--out", str(out)]) == 0
+    rows = json.loads((out / "comparison.json").read_text())
+    assert {(r["backend"], r["sensors"]) for r in rows} == {
+        (b, s) for b in ("ekf", "isam2", "batch") for s in ("fused", "laser", "sonar")
+    }
+    md = (out / "comparison.md").read_text()
+    assert md.count("\n| ") >= 9 and (out / "comparison.png").stat().st_size > 20000
+    assert (out / "isam2-sonar" / "map.png").exists()
+    assert "| batch | fused |" in capsys.readouterr().out
+
+
+def test_run_bad_input(tmp_path, capsys):
+    bad = tmp_path / "bad.log"
+    bad.write_text("FGSLAM-LOG 1\nnot a header\n")
+    assert main(["run", str(bad), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "bad.log" in err and "Traceback" not in err
