@@ -208,79 +208,36 @@ def run_backends(
     total = time.perf_counter() - t_start
     # the shared work (reading, front end) is charged to every backend
     shared = total - sum(s.wall for s in sessions.values())
+    common = dict(
+        kf_odo=kf_odo,
+        truth_t=truth_t,
+        truth=truth,
+        stats=stats,
+        shared=shared,
+        first_t=first_t,
+        last_t=last_t,
+        sensors=sensors,
+    )
+    # (session, name) in the order to finish them: iSAM2's estimate before the batch solve
+    order = [("ekf", "ekf"), ("graph", "isam2"), ("graph", "batch")]
     results: dict[str, SlamResult] = {}
-    for key, sess in sessions.items():
-        t0 = time.perf_counter()
-        if key == "graph" and "isam2" in backends:
-            results["isam2"] = _result(
-                sess,
-                sensors,
-                cfg,
-                "isam2",
-                kf_times,
-                kf_odo,
-                truth_t,
-                truth,
-                stats,
-                shared,
-                first_t,
-                last_t,
-                time.perf_counter() - t0,
-            )
-            t0 = time.perf_counter()
-        if key == "graph" and "batch" in backends:
+    for key, name in order:
+        if key not in sessions or name not in backends:
+            continue
+        sess = sessions[key]
+        if name == "batch":
             sess.be.run_batch()
-            results["batch"] = _result(
-                sess,
-                sensors,
-                cfg,
-                "batch",
-                kf_times,
-                kf_odo,
-                truth_t,
-                truth,
-                stats,
-                shared,
-                first_t,
-                last_t,
-                time.perf_counter() - t0,
-            )
-        if key == "ekf":
-            results["ekf"] = _result(
-                sess,
-                sensors,
-                cfg,
-                "ekf",
-                kf_times,
-                kf_odo,
-                truth_t,
-                truth,
-                stats,
-                shared,
-                first_t,
-                last_t,
-                time.perf_counter() - t0,
-            )
+        results[name] = _result(sess, name, **common)
     for r in results.values():
         r.stats["frontend_seconds"] = round(fe_wall, 3)
     return [results[b] for b in backends]
 
 
 def _result(
-    sess,
-    sensors,
-    cfg,
-    name,
-    kf_times,
-    kf_odo,
-    truth_t,
-    truth,
-    stats,
-    shared,
-    first_t,
-    last_t,
-    finish_wall,
+    sess, name, *, kf_odo, truth_t, truth, stats, shared, first_t, last_t, sensors
 ) -> SlamResult:
+    """Finish one session's backend and package its result; ``shared`` (s) is the reading
+    and front-end time that every backend of the pass is charged with."""
     t0 = time.perf_counter()
     traj = sess.be.finish()
     means = {
@@ -288,7 +245,7 @@ def _result(
         for lid, m in sess.be.means().items()
     }
     covs = sess.be.landmark_covariances()
-    finish = time.perf_counter() - t0 + finish_wall
+    finish = time.perf_counter() - t0
     st = Counter(stats)
     st.update(sess.stats)
     if name == "batch":
