@@ -1,0 +1,274 @@
+"""What every driver shares: the serial port (pyserial), recording, statistics, and a thread
+that keeps a device running (reopening it after a disconnect).
+
+A driver is a :class:`SerialDevice` around a *receiver*: a pure object (no I/O) that turns
+timestamped byte chunks into frames. The driver records every chunk it reads, and every port
+event that changes how bytes are decoded (open, baud change), before handing it to the
+receiver; replaying a recording through a fresh receiver therefore gives the same frames, with
+the same timestamps, as the live run (:mod:`devices.replay`).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, fields
+from typing import Any, Protocol
+
+import serial
+
+from devices.clock import Clock
+from devices.raw import RawRecorder
+
+READ_SLICE = 0.05  # s, longest single blocking read (bounds the reaction to stop requests)
+
+
+class DeviceError(Exception):
+    """The device does not answer as its protocol says (no reply, refused command, wrong
+    device). Port errors are ``serial.SerialException`` or ``OSError``."""
+
+
+class Measurement:
+    """Base of the data frames drivers deliver (laser scans, sonar readings, odometry)."""
+
+    t: float  # log time of the measurement, s (best estimate)
+    t_host: float  # log time of the read that completed the frame, s
+
+
+class Receiver(Protocol):
+    """Turns byte chunks into frames: measurements (subclasses of :class:`Measurement`) and
+    protocol replies. ``reset`` starts afresh (the port was opened at ``baud``)."""
+
+    def reset(self, baud: int) -> None: ...
+
+    def set_baud(self, baud: int) -> None: ...
+
+    def feed(self, t: float, data: bytes) -> list[Any]: ...
+
+    def counters(self) -> dict[str, int]: ...
+
+
+@dataclass
+class LinkStats:
+    """Counters of a driver's link (beyond its decoder's)."""
+
+    opens: int = 0  # successful opens (connect and configure)
+    disconnects: int = 0  # losses of a configured device (port error or silence)
+    timeouts: int = 0  # requests that got no reply in time
+    naks: int = 0  # requests the device refused (NAK) or answered with an error
+    retries: int = 0  # requests sent again
+
+
+class SerialDevice:
+    """A device on a serial port. Subclasses implement :meth:`open` (open the port and
+    configure the device) and may override :meth:`read`.
+
+    ``clock`` stamps every read (log time, s); ``recorder``, if given, receives every byte.
+    """
+
+    kind = "device"
+    parity = serial.PARITY_NONE
+
+    def __init__(
+        self,
+        port: str,
+        receiver: Receiver,
+        *,
+        clock: Clock | None = None,
+        recorder: RawRecorder | None = None,
+    ) -> None:
+        self.port = port
+        self.receiver = receiver
+        self.clock = clock or Clock()
+        self.recorder = recorder
+        self.link = LinkStats()
+        self.last_error = ""
+        self.port_baud = 0
+        self._ser: serial.Serial | None = None
+        self._pending: list[Measurement] = []
+        self._last_data = time.monotonic()
+
+    def recording_header(self) -> dict[str, Any]:
+        """Header of this device's raw recording: what replay needs to decode it."""
+        return {"device": self.kind, "port": self.port}
+
+    # -- port
+
+    @property
+    def is_open(self) -> bool:
+        return self._ser is not None
+
+    def _open_port(self, baud: int) -> None:
+        """Open the port at ``baud``, 8 data bits, the device's parity, 1 stop bit; drop
+        whatever the port buffered before."""
+        self.close()
+        ser = serial.Serial(
+            self.port,
+            baud,
+            bytesize=serial.EIGHTBITS,
+            parity=self.parity,
+            stopbits=serial.STOPBITS_ONE,
+            timeout=READ_SLICE,
+            write_timeout=2.0,
+        )
+        ser.reset_input_buffer()
+        self._ser = ser
+        self.port_baud = baud
+        self._pending.clear()
+        t = self.clock.now()
+        if self.recorder is not None:
+            self.recorder.marker(t, "open", baud=baud, port=self.port)
+        self.receiver.reset(baud)
+        self._last_data = time.monotonic()
+
+    def _set_port_baud(self, baud: int) -> None:
+        """Change the host side's line rate."""
+        assert self._ser is not None
+        self._ser.baudrate = baud
+        self.port_baud = baud
+        if self.recorder is not None:
+            self.recorder.marker(self.clock.now(), "baud", baud=baud)
+        self.receiver.set_baud(baud)
+
+    def _write(self, data: bytes) -> None:
+        if self._ser is None:
+            raise DeviceError(f"{self.port}: not open")
+        if self.recorder is not None:
+            self.recorder.sent(self.clock.now(), data)
+        self._ser.write(data)
+
+    def _read_items(self, timeout: float) -> list[Any]:
+        """Wait up to ``timeout`` s for bytes; record and decode what arrived."""
+        ser = self._ser
+        if ser is None:
+            raise DeviceError(f"{self.port}: not open")
+        deadline = time.monotonic() + timeout
+        while True:
+            data = ser.read(1)
+            if data:
+                waiting = ser.in_waiting
+                if waiting:
+                    data += ser.read(waiting)
+                break
+            if time.monotonic() >= deadline:
+                return []
+        t = self.clock.now()
+        if self.recorder is not None:
+            self.recorder.received(t, data)
+        return self.receiver.feed(t, data)
+
+    def close(self, reason: str = "closed") -> None:
+        """Close the port (safe to call at any time)."""
+        ser, self._ser = self._ser, None
+        if ser is None:
+            return
+        if self.recorder is not None:
+            self.recorder.marker(self.clock.now(), "close", reason=reason)
+        try:
+            ser.close()
+        except (serial.SerialException, OSError):
+            pass
+
+    # -- measurements
+
+    def open(self) -> None:
+        """Open the port and bring the device into streaming; DeviceError if it does not
+        answer, SerialException/OSError if the port cannot be opened."""
+        raise NotImplementedError
+
+    def read(self, timeout: float = 0.1) -> list[Measurement]:
+        """Measurements completed within ``timeout`` s (possibly none)."""
+        out, self._pending = self._pending, []
+        if not out:
+            out = [x for x in self._read_items(timeout) if _is_data(x)]
+        if out:
+            self._last_data = time.monotonic()
+        return out
+
+    def seconds_since_data(self) -> float:
+        """Wall-clock seconds since the last measurement (or since the port was opened)."""
+        return time.monotonic() - self._last_data
+
+    def counters(self) -> dict[str, int]:
+        """All counters: link (opens, disconnects, timeouts, naks, retries) and receiver
+        (bytes_in, frames, crc_errors, discarded, dropped_frames, bad_frames, ...)."""
+        d = {f.name: getattr(self.link, f.name) for f in fields(self.link)}
+        d.update(self.receiver.counters())
+        return d
+
+    def __enter__(self) -> SerialDevice:
+        self.open()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _is_data(item: Any) -> bool:
+    return isinstance(item, Measurement)
+
+
+class DeviceRunner:
+    """Keeps one device running in a thread: opens it (retrying every ``reopen_interval``
+    s), reads, and passes each measurement to ``sink``; on a port error, or when no
+    measurement came for ``silence_timeout`` s (a device that stopped answering), it closes
+    and reopens. ``stop()`` ends the thread and closes the port."""
+
+    def __init__(
+        self,
+        device: SerialDevice,
+        sink: Callable[[Measurement], None],
+        *,
+        reopen_interval: float = 0.5,
+        silence_timeout: float = 3.0,
+        name: str | None = None,
+    ) -> None:
+        self.device = device
+        self.sink = sink
+        self.reopen_interval = reopen_interval
+        self.silence_timeout = silence_timeout
+        self.connected = threading.Event()
+        self.error: BaseException | None = None  # an exception from the sink, fatal
+        self._stop = threading.Event()
+        self._thread = threading.Thread(
+            target=self._run, name=name or f"fgslam-{device.kind}", daemon=True
+        )
+
+    def start(self) -> DeviceRunner:
+        self._thread.start()
+        return self
+
+    def stop(self, timeout: float = 5.0) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout)
+
+    @property
+    def running(self) -> bool:
+        return self._thread.is_alive()
+
+    def _run(self) -> None:
+        dev = self.device
+        try:
+            while not self._stop.is_set():
+                try:
+                    if not dev.is_open:
+                        dev.open()
+                        self.connected.set()
+                    for m in dev.read(0.1):
+                        self.sink(m)
+                    if dev.seconds_since_data() > self.silence_timeout:
+                        raise DeviceError(f"no data for {self.silence_timeout:g} s")
+                except (DeviceError, serial.SerialException, OSError) as exc:
+                    dev.last_error = f"{type(exc).__name__}: {exc}"
+                    if self.connected.is_set():
+                        dev.link.disconnects += 1
+                        self.connected.clear()
+                    dev.close(reason=dev.last_error)
+                    self._stop.wait(self.reopen_interval)
+        except BaseException as exc:  # a bug or a failing sink: keep it for the owner
+            self.error = exc
+        finally:
+            self.connected.clear()
+            dev.close(reason="stopped")
