@@ -10,6 +10,7 @@ the same timestamps, as the live run (:mod:`devices.replay`).
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -22,6 +23,18 @@ from devices.clock import Clock
 from devices.raw import RawRecorder
 
 READ_SLICE = 0.05  # s, longest single blocking read (bounds the reaction to stop requests)
+
+try:  # pyserial lets termios errors through on some ports; they are port errors
+    import termios
+
+    _PORT_ERRORS: tuple[type[BaseException], ...] = (termios.error,)
+except ImportError:  # pragma: no cover - not POSIX
+    _PORT_ERRORS = ()
+
+
+def is_pseudo_terminal(port: str) -> bool:
+    """Whether ``port`` (possibly a symlink) is a pseudo-terminal, which has no parity."""
+    return os.path.realpath(port).startswith("/dev/pts/")
 
 
 class DeviceError(Exception):
@@ -103,19 +116,23 @@ class SerialDevice:
         """Open the port at ``baud``, 8 data bits, the device's parity, 1 stop bit; drop
         whatever the port buffered before."""
         self.close()
-        ser = serial.Serial(
-            self.port,
-            baud,
-            bytesize=serial.EIGHTBITS,
-            parity=self.parity,
-            stopbits=serial.STOPBITS_ONE,
-            timeout=READ_SLICE,
-            write_timeout=2.0,
-        )
+        # a pty cannot do parity (some kernels reject it): there it is emulated logically
+        parity = serial.PARITY_NONE if is_pseudo_terminal(self.port) else self.parity
+        try:
+            ser = serial.Serial(
+                self.port,
+                baud,
+                bytesize=serial.EIGHTBITS,
+                parity=parity,
+                stopbits=serial.STOPBITS_ONE,
+                timeout=READ_SLICE,
+                write_timeout=2.0,
+            )
+        except _PORT_ERRORS as exc:
+            raise serial.SerialException(f"cannot configure {self.port}: {exc}") from None
         ser.reset_input_buffer()
         self._ser = ser
         self.port_baud = baud
-        self._pending.clear()
         t = self.clock.now()
         if self.recorder is not None:
             self.recorder.marker(t, "open", baud=baud, port=self.port)
@@ -125,7 +142,10 @@ class SerialDevice:
     def _set_port_baud(self, baud: int) -> None:
         """Change the host side's line rate."""
         assert self._ser is not None
-        self._ser.baudrate = baud
+        try:
+            self._ser.baudrate = baud
+        except _PORT_ERRORS as exc:
+            raise serial.SerialException(f"cannot set {baud} baud on {self.port}: {exc}") from None
         self.port_baud = baud
         if self.recorder is not None:
             self.recorder.marker(self.clock.now(), "baud", baud=baud)
@@ -184,6 +204,13 @@ class SerialDevice:
             out = [x for x in self._read_items(timeout) if _is_data(x)]
         if out:
             self._last_data = time.monotonic()
+        return out
+
+    def drain(self) -> list[Measurement]:
+        """Measurements decoded but not yet returned by :meth:`read` (e.g. those that came
+        in while a request failed): the runner delivers them before reopening, so nothing
+        decoded - nothing a replay of the recording would give - is lost."""
+        out, self._pending = self._pending, []
         return out
 
     def seconds_since_data(self) -> float:
@@ -260,13 +287,17 @@ class DeviceRunner:
                         self.sink(m)
                     if dev.seconds_since_data() > self.silence_timeout:
                         raise DeviceError(f"no data for {self.silence_timeout:g} s")
-                except (DeviceError, serial.SerialException, OSError) as exc:
+                except (DeviceError, serial.SerialException, OSError, *_PORT_ERRORS) as exc:
                     dev.last_error = f"{type(exc).__name__}: {exc}"
                     if self.connected.is_set():
                         dev.link.disconnects += 1
                         self.connected.clear()
+                    for m in dev.drain():
+                        self.sink(m)
                     dev.close(reason=dev.last_error)
                     self._stop.wait(self.reopen_interval)
+            for m in dev.drain():
+                self.sink(m)
         except BaseException as exc:  # a bug or a failing sink: keep it for the owner
             self.error = exc
         finally:

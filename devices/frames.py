@@ -219,14 +219,18 @@ class FramedDevice(SerialDevice):
             self._write(frame)
             deadline = time.monotonic() + self.reply_timeout
             while (left := deadline - time.monotonic()) > 0:
-                for item in self._read_items(min(left, 0.05)):
+                reply = None
+                for item in self._read_items(min(left, 0.05)):  # the whole chunk: keep data
                     if isinstance(item, Measurement):
                         self._pending.append(item)
-                    elif item.seq == seq and item.type == ctype | REPLY_BIT:
-                        return item
-                    elif item.seq == seq and item.type == TYPE_ERROR:
-                        self.link.naks += 1
-                        raise DeviceError(f"{self.port}: device refused command 0x{ctype:02x}")
+                    elif reply is None and item.seq == seq:
+                        if item.type in (ctype | REPLY_BIT, TYPE_ERROR):
+                            reply = item
+                if reply is not None and reply.type == TYPE_ERROR:
+                    self.link.naks += 1
+                    raise DeviceError(f"{self.port}: device refused command 0x{ctype:02x}")
+                if reply is not None:
+                    return reply
             self.link.timeouts += 1
         raise DeviceError(f"{self.port}: no reply to command 0x{ctype:02x}")
 

@@ -138,25 +138,29 @@ class RawReader:
             return False
         return RawRecord(tag.decode(), t, bytes(data[i + _HEAD.size : j])), j + _CRC.size
 
+    def _next_valid(self, i: int) -> int:
+        """Offset of the first valid record after i (the file's length if there is none)."""
+        n = len(self._data)
+        k = i + 1
+        while k < n:
+            got = self._record_at(k)
+            if got is not None and got is not False:
+                return k
+            k += 1
+        return n
+
     def __iter__(self) -> Iterator[RawRecord]:
         i, n = self._start, len(self._data)
         while i < n:
             got = self._record_at(i)
-            if got is False:
-                # damage: find the next offset where a valid record starts
-                k = i + 1
-                while k < n:
-                    nxt = self._record_at(k)
-                    if nxt is not False and nxt is not None:
-                        break
-                    k += 1
+            if got is False or got is None:
+                # damage, or a record cut off at the end of the file (a crash): a damaged
+                # length also looks like the latter, so look for a valid record further on
+                k = self._next_valid(i)
                 self.skipped_bytes += k - i
+                if k == n and got is None:
+                    self.truncated = True
                 i = k
                 continue
-            if got is None:
-                self.truncated = True
-                self.skipped_bytes += n - i
-                return
-            assert not isinstance(got, bool)
             rec, i = got
             yield rec

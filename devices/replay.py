@@ -75,6 +75,13 @@ def replay_dir(
         rf = ReplayFile(Path(raw_dir) / f"{name}.raw")
         if opened is not None:
             opened[name] = rf
-        streams.append(((m.t_host, idx, k, name, m) for k, m in enumerate(rf)))
+        streams.append(_keyed(rf, idx, name))
     for _, _, _, name, m in heapq.merge(*streams, key=lambda x: x[:3]):
         yield name, m
+
+
+def _keyed(
+    rf: ReplayFile, idx: int, name: str
+) -> Iterator[tuple[float, int, int, str, Measurement]]:
+    for k, m in enumerate(rf):
+        yield m.t_host, idx, k, name, m

@@ -368,8 +368,11 @@ class SickPLS(SerialDevice):
                 if left <= 0:
                     self.link.timeouts += 1
                     break
-                for item in self._read_items(min(left, 0.05)):
+                reply: Any = None
+                for item in self._read_items(min(left, 0.05)):  # the whole chunk: keep data
                     if isinstance(item, Control):
+                        if reply is not None or nak:
+                            continue
                         if item.code == ACK:
                             deadline = (
                                 time.monotonic()
@@ -379,19 +382,21 @@ class SickPLS(SerialDevice):
                         else:
                             self.link.naks += 1
                             nak = True
-                            break
                     elif isinstance(item, LaserFrame):
-                        if want == REPLY_VALUES:
-                            self._last_data = time.monotonic()
-                            return item
-                        self._pending.append(item)
-                    elif item.command == want:
-                        return item
-                    elif item.command == REPLY_NOT_ACK:
-                        self.link.naks += 1
-                        raise DeviceError(
-                            f"{self.port}: scanner refused request {payload[:2].hex()}"
-                        )
+                        if want == REPLY_VALUES and reply is None and not nak:
+                            reply = item
+                        else:
+                            self._pending.append(item)
+                    elif reply is None and not nak and item.command in (want, REPLY_NOT_ACK):
+                        reply = item
+                if isinstance(reply, LaserFrame):
+                    self._last_data = time.monotonic()
+                    return reply
+                if reply is not None and reply.command == REPLY_NOT_ACK:
+                    self.link.naks += 1
+                    raise DeviceError(f"{self.port}: scanner refused request {payload[:2].hex()}")
+                if reply is not None:
+                    return reply
         raise DeviceError(
             f"{self.port}: no reply to request {payload[:2].hex()} at {self.port_baud} baud "
             f"after {retries + 1} attempt(s)"
