@@ -196,3 +196,33 @@ def test_receivers_never_raise(data, payload, seq, cuts, sonar):
         for m in rcv.feed(float(k), c):
             assert not isinstance(m, SonarFrame | OdometryFrame) or m.t <= m.t_host
     assert rcv.dropped_frames >= 0 and math.isfinite(rcv.time.drift)
+
+
+DOC_EXAMPLES = [  # docs/devices.md
+    (
+        build_frame(fr.ODOMETRY_SYNC, fr.DATA_ODOMETRY, 7, encode_sample(1_230_000, 21, -20)),
+        "AA 4F 09 40 07 00 B0 C4 12 00 15 00 EC FF 00 F9 0E",
+    ),
+    (
+        build_frame(
+            fr.SONAR_SYNC,
+            fr.DATA_SONAR,
+            258,
+            encode_reading(40_000, 0.5, [("plane", 2.35, -0.1), ("edge", 1.2, 0.25)]),
+        ),
+        "AA 53 11 41 02 01 40 9C 00 00 88 13 02 00 2E 09 18 FC 02 B0 04 C4 09 37 C9",
+    ),
+    (build_frame(fr.SONAR_SYNC, fr.CMD_INFO, 1), "AA 53 00 01 01 00 DB 96"),
+    (
+        build_frame(fr.SONAR_SYNC, 0x81, 1, fr.DeviceInfo(1, fr.KIND_SONAR, 1, 0.04).encode()),
+        "AA 53 07 81 01 00 01 02 01 40 9C 00 00 8C 6D",
+    ),
+    (build_frame(fr.ODOMETRY_SYNC, fr.CMD_START, 2), "AA 4F 00 02 02 00 A9 15"),
+    (build_frame(fr.ODOMETRY_SYNC, 0x82, 2, b"\x00"), "AA 4F 01 82 02 00 00 FD 9C"),
+    (build_frame(fr.ODOMETRY_SYNC, fr.TYPE_ERROR, 3, b"\x09\x01"), "AA 4F 02 FF 03 00 09 01 24 91"),
+]
+
+
+@pytest.mark.parametrize("frame, wire", DOC_EXAMPLES)
+def test_documented_examples(frame, wire):
+    assert frame == bytes.fromhex(wire)
