@@ -351,14 +351,14 @@ class PtyEmulator:
 
     def _write(self, data: bytes) -> None:
         view = memoryview(data)
-        deadline = time.monotonic() + 0.2
+        deadline = time.monotonic() + 1.0  # then the host is not reading: bytes are lost
         while view:
             try:
                 n = os.write(self._master, view)
                 self.stats.bytes_sent += n
                 view = view[n:]
             except BlockingIOError:
-                if time.monotonic() > deadline:  # the host is not reading: bytes are lost
+                if time.monotonic() > deadline:
                     self.stats.overflow_bytes += len(view)
                     return
                 select.select([], [self._master], [], 0.01)
