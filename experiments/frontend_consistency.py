@@ -14,8 +14,13 @@ Prints: (1) the mean NEES in the four cases of issue 4 (random errors only / wit
 simulator's systematic errors, each without / with the inflation); (2) the random-only mean
 NEES at several ranges and incidence angles; (3) the simulated range error itself (sd, and the
 correlation of neighbouring beams that quantisation could cause) and the mean NEES for several
-values of the simulator's random sigma. Draws frontend_consistency.png next to this file.
+values of the simulator's random sigma (0.5, 1 and 2 cm besides the default). Draws
+frontend_consistency.png next to this file.
 The target (issue 4): random-only mean NEES in [0.8, 1.25] x dimension without inflation.
+The simulator's default ``SimParams.laser_sigma`` (1.38 cm) is the calibrated value: with the
+5 cm quantisation (sd 1.44 cm) it makes the simulated random range error the configured
+``sigma_range`` (2 cm). With ``--laser-sigma`` set to another value, the tables and the figure
+show the calibrated value next to it.
 """
 
 from __future__ import annotations
@@ -131,7 +136,11 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=500, help="scans per case")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--laser-sigma", type=float, help="override SimParams.laser_sigma (m)")
+    ap.add_argument(
+        "--laser-sigma",
+        type=float,
+        help=f"override SimParams.laser_sigma (m; default {SimParams().laser_sigma}, calibrated)",
+    )
     args = ap.parse_args()
     default = SimParams()
     if args.laser_sigma is not None:
@@ -139,10 +148,9 @@ def main() -> None:
     q = LASER.range_resolution
     # the Gaussian sigma that makes Gaussian + quantisation the configured random error
     calibrated = math.sqrt(LASER.sigma_range**2 - q**2 / 12)
-    sims = {
-        "default": default,
-        "calibrated": dataclasses.replace(default, laser_sigma=round(calibrated, 4)),
-    }
+    sims = {"default": default}  # the calibrated sigma too, unless it is the default
+    if round(calibrated, 4) != round(default.laser_sigma, 4):
+        sims["calibrated"] = dataclasses.replace(default, laser_sigma=round(calibrated, 4))
     seeds = np.random.SeedSequence(args.seed).spawn(64)
     rngs = iter(np.random.default_rng(s) for s in seeds)
     n = args.n
@@ -155,12 +163,13 @@ def main() -> None:
     )
     for name, sp in sims.items():
         eff = math.hypot(sp.laser_sigma, q / math.sqrt(12))
+        same = " (= calibrated)" if len(sims) == 1 else ""
         print(
-            f"  {name:10s} laser_sigma {100 * sp.laser_sigma:.2f} cm -> random range error "
+            f"  {name:10s} laser_sigma {100 * sp.laser_sigma:.2f} cm{same} -> random range error "
             f"{100 * eff:.2f} cm"
         )
 
-    # (1) the four cases, for the simulator's default sigma and the calibrated one
+    # (1) the four cases, for the simulator's default sigma (and the calibrated one if not)
     res = {}
     for name, sp in sims.items():
         random_only = dataclasses.replace(sp, laser_sys_offset=0.0, laser_sys_per_metre=0.0)
@@ -196,8 +205,14 @@ def main() -> None:
 
     # (2) geometry sweep, random errors only, no inflation
     print("\n(2) random errors only, mean NEES / dimension with cov_random, by geometry")
-    print("| feature | geometry                          | default sigma | calibrated sigma |")
-    print("|---------|-----------------------------------|---------------|------------------|")
+    print(
+        "| feature | geometry                          |"
+        + "".join(f" {name} sigma {100 * sp.laser_sigma:.2f} cm |" for name, sp in sims.items())
+    )
+    print(
+        "|---------|-----------------------------------|"
+        + "".join("-" * (len(name) + 16) + "|" for name in sims)
+    )
     cases = [
         ("line", "d 1.5 m, normal incidence", line_trials, (1.5, 0), {}),
         ("line", "d 6 m, normal incidence", line_trials, (6.0, 0), {}),
@@ -217,7 +232,10 @@ def main() -> None:
             r = trials(*where, p, n, next(rngs))
             rej = f" ({r.rejected} rejected)" if r.rejected else ""
             cells.append(f"{r.nees_random.mean() / dim:.2f}{rej}")
-        print(f"| {kind:7s} | {geom:33s} | {cells[0]:>13s} | {cells[1]:>16s} |")
+        print(
+            f"| {kind:7s} | {geom:33s} |"
+            + "".join(f" {c:>{len(name) + 14}s} |" for c, name in zip(cells, sims, strict=True))
+        )
 
     # (3) the simulated range error and the simulator's sigma
     print(
@@ -225,28 +243,33 @@ def main() -> None:
         "within +-15 deg) and random-only mean NEES / dimension, by SimParams.laser_sigma"
     )
     print(
-        "| laser_sigma (cm) | expected sd (cm) | range error sd (cm) | neighbour corr. "
+        "| laser_sigma (cm)    | expected sd (cm) | range error sd (cm) | neighbour corr. "
         "| line NEES/2 | corner NEES/3 |"
     )
     print(
-        "|------------------|------------------|---------------------|-----------------"
+        "|---------------------|------------------|---------------------|-----------------"
         "|-------------|---------------|"
     )
-    sweep = {}
-    for s in sorted({0.005, 0.02, *(sp.laser_sigma for sp in sims.values())}):
+    sweep = {}  # laser_sigma -> (line, corner) random-only NEES per scan (cov_random)
+    for s in sorted({0.005, 0.01, 0.02, *(sp.laser_sigma for sp in sims.values())}):
         p = dataclasses.replace(default, laser_sigma=s, laser_sys_offset=0, laser_sys_per_metre=0)
         sd, rho = range_errors(p, next(rngs))
-        if s in (sp.laser_sigma for sp in sims.values()):  # measured in (1) already
-            name = next(k for k, sp in sims.items() if sp.laser_sigma == s)
-            ln = res[(name, "random", "line")].nees_random.mean() / 2
-            cn = res[(name, "random", "corner")].nees_random.mean() / 3
+        name = next((k for k, sp in sims.items() if sp.laser_sigma == s), None)
+        if name is not None:  # measured in (1) already
+            sweep[s] = (
+                res[(name, "random", "line")].nees_random,
+                res[(name, "random", "corner")].nees_random,
+            )
         else:
-            ln = line_trials(3.0, 0.0, p, n, next(rngs)).nees_random.mean() / 2
-            cn = corner_trials(3.0, 0.0, p, n, next(rngs)).nees_random.mean() / 3
-        sweep[s] = (ln, cn)
+            sweep[s] = (
+                line_trials(3.0, 0.0, p, n, next(rngs)).nees_random,
+                corner_trials(3.0, 0.0, p, n, next(rngs)).nees_random,
+            )
+        ln, cn = sweep[s][0].mean() / 2, sweep[s][1].mean() / 3
         expected = 100 * math.hypot(s, q / math.sqrt(12))
+        label = f"{100 * s:.2f}" + (f" ({name})" if name else "")
         print(
-            f"| {100 * s:16.2f} | {expected:16.2f} | {100 * sd:19.2f} | {rho:15.3f} "
+            f"| {label:>19s} | {expected:16.2f} | {100 * sd:19.2f} | {rho:15.3f} "
             f"| {ln:11.2f} | {cn:13.2f} |"
         )
 
@@ -257,25 +280,27 @@ def draw(res, sims, sweep, path: Path) -> None:
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.4))
     bins = np.linspace(0, 16, 41)
     x = np.linspace(0.01, 16, 400)
-    sig = {k: f"{100 * sp.laser_sigma:.2f} cm" for k, sp in sims.items()}
-    for ax, kind, dim in ((axes[0], "line", 2), (axes[1], "corner", 3)):
-        cal, dft = res[("calibrated", "random", kind)], res[("default", "random", kind)]
-        sysd = res[("default", "systematic", kind)]
-        ax.hist(
-            np.clip(cal.nees_random, 0, 16),
-            bins,
-            density=True,
-            alpha=0.45,
-            label=f"random, sigma {sig['calibrated']}: mean {cal.nees_random.mean():.2f}",
-        )
+    default = sims["default"].laser_sigma
+    others = [s for s in sorted(sweep) if s != default and s >= 0.01]  # 1 cm, 2 cm, (cal.)
+    for ax, kind, dim, k in ((axes[0], "line", 2, 0), (axes[1], "corner", 3, 1)):
+        dft, sysd = res[("default", "random", kind)], res[("default", "systematic", kind)]
         ax.hist(
             np.clip(dft.nees_random, 0, 16),
             bins,
             density=True,
-            histtype="step",
-            lw=1.5,
-            label=f"random, sigma {sig['default']}: mean {dft.nees_random.mean():.2f}",
+            alpha=0.45,
+            label=f"random, default sigma {100 * default:.2f} cm: "
+            f"mean {dft.nees_random.mean():.2f}",
         )
+        for s in others:
+            ax.hist(
+                np.clip(sweep[s][k], 0, 16),
+                bins,
+                density=True,
+                histtype="step",
+                lw=1.5,
+                label=f"random, sigma {100 * s:.2f} cm: mean {sweep[s][k].mean():.2f}",
+            )
         ax.hist(
             np.clip(sysd.nees_full, 0, 16),
             bins,
@@ -283,11 +308,12 @@ def draw(res, sims, sweep, path: Path) -> None:
             histtype="step",
             lw=1.2,
             ls="--",
+            color="k",
             label=f"+ sim. systematic, cov with inflation: mean {sysd.nees_full.mean():.2f}",
         )
         ax.plot(x, stats.chi2.pdf(x, dim), "k", lw=2, label=rf"$\chi^2_{dim}$ density")
         ax.set(
-            title=f"{kind} fit: NEES of {len(cal.nees_random)} scans each (clipped at 16)",
+            title=f"{kind} fit: NEES of {len(dft.nees_random)} scans each (clipped at 16)",
             xlabel="NEES",
             ylabel="density",
             xlim=(0, 16),
@@ -296,10 +322,10 @@ def draw(res, sims, sweep, path: Path) -> None:
     ax = axes[2]
     s = np.array(sorted(sweep))
     ax.axhspan(0.8, 1.25, color="g", alpha=0.15, label="target band [0.8, 1.25]")
-    ax.plot(100 * s, [sweep[v][0] for v in s], "o-", label="line NEES / 2")
-    ax.plot(100 * s, [sweep[v][1] for v in s], "s-", label="corner NEES / 3")
+    ax.plot(100 * s, [sweep[v][0].mean() / 2 for v in s], "o-", label="line NEES / 2")
+    ax.plot(100 * s, [sweep[v][1].mean() / 3 for v in s], "s-", label="corner NEES / 3")
     for k, sp in sims.items():
-        ax.axvline(100 * sp.laser_sigma, color="gray", ls=":" if k == "default" else "--")
+        ax.axvline(100 * sp.laser_sigma, color="gray", ls="--" if k == "default" else ":")
         ax.text(100 * sp.laser_sigma, 1.3, f" {k}", fontsize=8, color="gray", rotation=90)
     ax.set(
         title="random errors only: mean NEES / dim (cov_random)",
