@@ -7,10 +7,11 @@ log's true pose when it has one (so errors and NEES need no alignment), else at 
 
 from __future__ import annotations
 
+import heapq
 import math
 import time
 from collections import Counter, deque
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -116,6 +117,274 @@ def run_slam(
     return run_backends(events, cfg, [backend], sensors, progress, map_params)[0]
 
 
+class ReorderBuffer:
+    """Puts events back into time order within a bounded delay.
+
+    Sources interleave: a laser scan is stamped when its first byte left the scanner, so it
+    reaches the host (and a log written in arrival order, like a replayed raw recording)
+    after the sonar readings and odometry samples of its transmission time (0.21 s at 38400
+    baud, 0.84 s at 9600); device threads add the host's scheduling jitter. An event is held
+    until one ``window`` s (log time) newer has been seen, and events leave in order of
+    time (ties: arrival order), so an input already in order leaves unchanged. An event
+    older than one already released cannot be put back: it is dropped (``dropped``).
+    ``window`` 0 releases every event at once (strict order: late events are dropped).
+    """
+
+    def __init__(self, window: float = 1.0) -> None:
+        if not window >= 0:
+            raise ValueError(f"reorder window must be >= 0, got {window}")
+        self.window = float(window)
+        self.newest = -math.inf  # latest time seen
+        self.released = -math.inf  # time of the last event released
+        self.dropped = 0  # events too late to put back
+        self.reordered = 0  # events that came after a later one and were put back
+        self._heap: list[tuple[float, int, Event]] = []
+        self._n = 0
+
+    def __len__(self) -> int:
+        return len(self._heap)
+
+    def push(self, ev: Event) -> list[Event]:
+        """Take one event; returns the events now due, in time order."""
+        if ev.t < self.released:
+            self.dropped += 1
+            return []
+        if ev.t < self.newest:
+            self.reordered += 1
+        else:
+            self.newest = ev.t
+        self._n += 1
+        heapq.heappush(self._heap, (ev.t, self._n, ev))
+        return self._pop(self.newest - self.window)
+
+    def flush(self) -> list[Event]:
+        """Every event still held, in time order (the end of the stream)."""
+        return self._pop(math.inf)
+
+    def _pop(self, until: float) -> list[Event]:
+        out = []
+        heap = self._heap
+        while heap and heap[0][0] <= until:
+            out.append(heapq.heappop(heap)[2])
+        if out:
+            self.released = out[-1].t
+        return out
+
+
+class SlamPipeline:
+    """The incremental pipeline: events in, one at a time, as they come; results at the end.
+
+    Events pass a :class:`ReorderBuffer` (``reorder_window`` s of log time; events later
+    than that are dropped and counted as ``events_out_of_order``), then the front end; each
+    keyframe it completes goes to every backend's session (each with its own map manager).
+    :meth:`add` returns how many keyframes the event completed; :meth:`pose`,
+    :meth:`landmark_counts`, :attr:`last_latency` and :attr:`keyframes` describe the current
+    state; :meth:`finish` processes what is still waiting and returns one
+    :class:`SlamResult` per backend, in the order of ``backends``.
+
+    ``wall_time`` of the results: with ``count_idle`` (running over a log) the time since
+    the pipeline was created, reading included; without (online, where the pipeline waits
+    for data) only the time spent in :meth:`add` and :meth:`finish`.
+    """
+
+    def __init__(
+        self,
+        cfg: RobotConfig,
+        backends: Sequence[str] = ("isam2",),
+        sensors: str = "fused",
+        map_params: MapParams | None = None,
+        *,
+        progress: Callable[[float], None] | None = None,
+        reorder_window: float = 1.0,
+        count_idle: bool = True,
+    ) -> None:
+        if sensors not in SENSORS:
+            raise ValueError(f"unknown sensor mode {sensors!r}; expected one of {SENSORS}")
+        backends = list(backends)
+        for b in backends:
+            if b not in BACKENDS:
+                raise ValueError(f"unknown backend {b!r}; expected one of {BACKENDS}")
+        self._t_start = time.perf_counter()
+        self.cfg = cfg
+        self.backends = backends
+        self.sensors = sensors
+        self.progress = progress
+        self.count_idle = count_idle
+        self.sessions: dict[str, _Session] = {}
+        for b in backends:
+            if b == "ekf":
+                self.sessions[b] = _Session("ekf", map_params)
+            elif b in ("isam2", "batch") and "graph" not in self.sessions:
+                self.sessions["graph"] = _Session("isam2", map_params)
+        self.reorder = ReorderBuffer(reorder_window)
+        self.frontend = FrontEnd(cfg, sensors)
+        o = cfg.odometry
+        self._odo_params = OdometryParams(o.wheelbase, o.k_r, o.k_l, o.k_d)
+        self._samples: deque[tuple[float, float, float]] = deque()
+        self.truth_t: list[float] = []
+        self.truth: list[tuple[float, float, float]] = []
+        self.stats: Counter = Counter()
+        self.kf_times: list[float] = []
+        self._kf_odo: list[NDArray[np.float64]] = []
+        self.first_t: float | None = None
+        self.last_t = -math.inf  # time of the last event processed
+        self._odo_pose = np.zeros(3)
+        self._fe_wall = 0.0
+        self._busy = 0.0
+        self._finished: list[SlamResult] | None = None
+
+    # -- feeding
+
+    def add(self, ev: Event) -> int:
+        """Take one event (any order within the reorder window); returns the number of
+        keyframes processed because of it."""
+        if self._finished is not None:
+            raise RuntimeError("the pipeline has finished")
+        t0 = time.perf_counter()
+        n = 0
+        dropped = self.reorder.dropped
+        for e in self.reorder.push(ev):
+            n += self._process(e)
+        if self.reorder.dropped > dropped:
+            self.stats["events_out_of_order"] += 1
+        self._busy += time.perf_counter() - t0
+        return n
+
+    def _process(self, ev: Event) -> int:
+        self.last_t = ev.t
+        if self.first_t is None:
+            self.first_t = ev.t
+        if isinstance(ev, TruthPose):
+            self.truth_t.append(ev.t)
+            self.truth.append((ev.x, ev.y, ev.theta))
+            return 0
+        if isinstance(ev, OdometryEvent):
+            o = self.cfg.odometry
+            self._samples.append(
+                (
+                    ev.t,
+                    ev.ticks_right * o.metres_per_tick_right,
+                    ev.ticks_left * o.metres_per_tick_left,
+                )
+            )
+        t0 = time.perf_counter()
+        out = self.frontend.add(ev)
+        self._fe_wall += time.perf_counter() - t0
+        for sf in out:
+            self._keyframe(sf)
+        if self.progress is not None:
+            self.progress(ev.t)
+        return len(out)
+
+    def _keyframe(self, sf) -> None:
+        o = self.cfg.odometry
+        samples = self._samples
+        lr, ll = [], []
+        while samples and samples[0][0] <= sf.t:
+            _, r, l = samples.popleft()
+            lr.append(r)
+            ll.append(l)
+        pre = preintegrate(lr, ll, self._odo_params)
+        first = not self.kf_times
+        if first:
+            self._odo_pose = _truth_at(self.truth_t, self.truth, sf.t)
+        elif lr:
+            self._odo_pose = integrate_poses(lr, ll, o.wheelbase, self._odo_pose)[-1]
+        for sess in self.sessions.values():
+            sess.keyframe(sf, pre, self._odo_pose if first else None)
+        self.stats.update({f"frontend_{k}": v for k, v in sf.stats.items()})
+        self.kf_times.append(sf.t)
+        self._kf_odo.append(self._odo_pose.copy())
+
+    # -- state
+
+    def _session(self, backend: str | None) -> _Session:
+        name = backend or self.backends[0]
+        if name not in self.backends:
+            raise ValueError(f"backend {name!r} is not part of this pipeline")
+        return self.sessions["ekf" if name == "ekf" else "graph"]
+
+    @property
+    def keyframes(self) -> int:
+        """Keyframes processed so far."""
+        return len(self.kf_times)
+
+    @property
+    def pending(self) -> int:
+        """Events held by the reorder buffer."""
+        return len(self.reorder)
+
+    def pose(self, backend: str | None = None) -> NDArray[np.float64] | None:
+        """Current pose estimate (x, y, theta) of ``backend`` (default: the first), None
+        before the first keyframe."""
+        sess = self._session(backend)
+        return sess.be.pose() if sess.started else None
+
+    def landmark_counts(self, backend: str | None = None) -> dict[str, int]:
+        """Landmarks in the map by kind (line, corner, point), merged ones left out."""
+        counts = Counter(
+            lm.kind for lm in self._session(backend).mapper.landmarks.values() if lm.active
+        )
+        return dict(counts)
+
+    def last_latency(self, backend: str | None = None) -> float | None:
+        """Wall seconds the last keyframe took in ``backend``'s session (map management
+        and update), None before the first keyframe."""
+        lat = self._session(backend).latencies
+        return lat[-1] if lat else None
+
+    @property
+    def busy_seconds(self) -> float:
+        """Wall seconds spent in :meth:`add` so far (front end and backends)."""
+        return self._busy
+
+    # -- the end
+
+    def finish(self) -> list[SlamResult]:
+        """Process everything still waiting (held events, scans waiting for their sonar
+        window) and return the results, in the order of ``backends``. Idempotent."""
+        if self._finished is not None:
+            return self._finished
+        t_busy = time.perf_counter()
+        for e in self.reorder.flush():
+            self._process(e)
+        if self.reorder.reordered:
+            self.stats["events_reordered"] = self.reorder.reordered
+        t0 = time.perf_counter()
+        out = self.frontend.finish()
+        self._fe_wall += time.perf_counter() - t0
+        for sf in out:
+            self._keyframe(sf)
+        now = time.perf_counter()
+        total = now - self._t_start if self.count_idle else self._busy + now - t_busy
+        # the shared work (reading, front end) is charged to every backend
+        shared = total - sum(s.wall for s in self.sessions.values())
+        common = dict(
+            kf_odo=self._kf_odo,
+            truth_t=self.truth_t,
+            truth=self.truth,
+            stats=self.stats,
+            shared=shared,
+            first_t=self.first_t,
+            last_t=self.last_t,
+            sensors=self.sensors,
+        )
+        # (session, name) in the order to finish them: iSAM2's estimate before the batch solve
+        order = [("ekf", "ekf"), ("graph", "isam2"), ("graph", "batch")]
+        results: dict[str, SlamResult] = {}
+        for key, name in order:
+            if key not in self.sessions or name not in self.backends:
+                continue
+            sess = self.sessions[key]
+            if name == "batch":
+                sess.be.run_batch()
+            results[name] = _result(sess, name, **common)
+        for r in results.values():
+            r.stats["frontend_seconds"] = round(self._fe_wall, 3)
+        self._finished = [results[b] for b in self.backends]
+        return self._finished
+
+
 def run_backends(
     events: Iterable[Event],
     cfg: RobotConfig,
@@ -124,113 +393,16 @@ def run_backends(
     progress: Callable[[float], None] | None = None,
     map_params: MapParams | None = None,
 ) -> list[SlamResult]:
-    """Run several backends on one pass of the front end over an event stream (in time order;
-    out-of-order events are dropped and counted). Each backend has its own map manager, so
-    associations follow its own estimates. ``batch`` shares the iSAM2 run's graph when both
-    are asked for: it is that graph solved by Levenberg-Marquardt at the end. ``progress`` is
-    called with each event's time. Results come in the order of ``backends``."""
-    if sensors not in SENSORS:
-        raise ValueError(f"unknown sensor mode {sensors!r}; expected one of {SENSORS}")
-    for b in backends:
-        if b not in BACKENDS:
-            raise ValueError(f"unknown backend {b!r}; expected one of {BACKENDS}")
-    t_start = time.perf_counter()
-    graph_names = [b for b in backends if b in ("isam2", "batch")]
-    sessions: dict[str, _Session] = {}
-    for b in backends:
-        if b == "ekf":
-            sessions[b] = _Session("ekf", map_params)
-        elif b in graph_names and "graph" not in sessions:
-            sessions["graph"] = _Session("isam2", map_params)
-    fe = FrontEnd(cfg, sensors)
-    o = cfg.odometry
-    odo_params = OdometryParams(o.wheelbase, o.k_r, o.k_l, o.k_d)
-    samples: deque[tuple[float, float, float]] = deque()
-    truth_t: list[float] = []
-    truth: list[tuple[float, float, float]] = []
-    stats: Counter = Counter()
-    kf_times: list[float] = []
-    kf_odo: list[NDArray[np.float64]] = []
-    last_t = -math.inf
-    first_t = None
-    odo_pose = np.zeros(3)
-    fe_wall = 0.0
-
-    def keyframe(sf) -> None:
-        nonlocal odo_pose
-        lr, ll = [], []
-        while samples and samples[0][0] <= sf.t:
-            _, r, l = samples.popleft()
-            lr.append(r)
-            ll.append(l)
-        pre = preintegrate(lr, ll, odo_params)
-        if not kf_times:
-            odo_pose = _truth_at(truth_t, truth, sf.t)
-        elif lr:
-            odo_pose = integrate_poses(lr, ll, o.wheelbase, odo_pose)[-1]
-        for sess in sessions.values():
-            sess.keyframe(sf, pre, odo_pose if not kf_times else None)
-        stats.update({f"frontend_{k}": v for k, v in sf.stats.items()})
-        kf_times.append(sf.t)
-        kf_odo.append(odo_pose.copy())
-
+    """Run several backends on one pass of the front end over an event stream (in time order
+    up to a :class:`ReorderBuffer` window of 1 s; later events are dropped and counted).
+    Each backend has its own map manager, so associations follow its own estimates.
+    ``batch`` shares the iSAM2 run's graph when both are asked for: it is that graph solved
+    by Levenberg-Marquardt at the end. ``progress`` is called with each event's time.
+    Results come in the order of ``backends``. See :class:`SlamPipeline`."""
+    pipe = SlamPipeline(cfg, backends, sensors, map_params, progress=progress)
     for ev in events:
-        if ev.t < last_t:
-            stats["events_out_of_order"] += 1
-            continue
-        last_t = ev.t
-        if first_t is None:
-            first_t = ev.t
-        if isinstance(ev, TruthPose):
-            truth_t.append(ev.t)
-            truth.append((ev.x, ev.y, ev.theta))
-            continue
-        if isinstance(ev, OdometryEvent):
-            samples.append(
-                (
-                    ev.t,
-                    ev.ticks_right * o.metres_per_tick_right,
-                    ev.ticks_left * o.metres_per_tick_left,
-                )
-            )
-        t0 = time.perf_counter()
-        out = fe.add(ev)
-        fe_wall += time.perf_counter() - t0
-        for sf in out:
-            keyframe(sf)
-        if progress is not None:
-            progress(ev.t)
-    t0 = time.perf_counter()
-    out = fe.finish()
-    fe_wall += time.perf_counter() - t0
-    for sf in out:
-        keyframe(sf)
-    total = time.perf_counter() - t_start
-    # the shared work (reading, front end) is charged to every backend
-    shared = total - sum(s.wall for s in sessions.values())
-    common = dict(
-        kf_odo=kf_odo,
-        truth_t=truth_t,
-        truth=truth,
-        stats=stats,
-        shared=shared,
-        first_t=first_t,
-        last_t=last_t,
-        sensors=sensors,
-    )
-    # (session, name) in the order to finish them: iSAM2's estimate before the batch solve
-    order = [("ekf", "ekf"), ("graph", "isam2"), ("graph", "batch")]
-    results: dict[str, SlamResult] = {}
-    for key, name in order:
-        if key not in sessions or name not in backends:
-            continue
-        sess = sessions[key]
-        if name == "batch":
-            sess.be.run_batch()
-        results[name] = _result(sess, name, **common)
-    for r in results.values():
-        r.stats["frontend_seconds"] = round(fe_wall, 3)
-    return [results[b] for b in backends]
+        pipe.add(ev)
+    return pipe.finish()
 
 
 def _result(
