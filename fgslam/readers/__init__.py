@@ -1,0 +1,83 @@
+"""Readers of foreign logs into fgslam's event stream (docs/readers.md).
+
+:func:`open_log` sniffs the format and returns something that iterates events and has
+``config``, ``world``, ``meta`` (and, for foreign logs, ``reference_kind`` and ``problems``):
+
+- native fgslam logs (:class:`fgslam.logfile.LogReader`);
+- CARMEN logs (:class:`fgslam.readers.carmen.CarmenLog`);
+- ROS 1 / ROS 2 bags (:class:`fgslam.readers.ros.RosBag`, needs ``rosbags``).
+
+The Victoria Park text format is not a sensor log: :func:`fgslam.readers.victoria.read_victoria`
+and :mod:`fgslam.slam.pointslam`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from fgslam.readers.common import ReaderError, StrPath, head_text
+
+FORMATS = ("fgslam", "carmen", "ros", "victoria")
+
+CARMEN_TAGS = ("FLASER", "ROBOTLASER1", "ODOM", "PARAM", "RLASER", "TRUEPOS", "SYNC", "NEFF")
+
+
+def sniff_format(path: StrPath) -> str:
+    """One of :data:`FORMATS`, from the file's first bytes (gzip looked through)."""
+    from fgslam.readers.ros import is_bag
+
+    p = Path(path)
+    if not p.exists():
+        raise ReaderError(f"{path}: no such file or directory")
+    if is_bag(p):
+        return "ros"
+    if p.is_dir():
+        raise ReaderError(f"{path}: a directory, but not a ROS 2 bag (no metadata.yaml)")
+    head = head_text(p)
+    if head.startswith("FGSLAM-LOG"):
+        return "fgslam"
+    tags = {ln.split()[0] for ln in head.splitlines()[:-1] if ln.split()}
+    if tags & {"ODOMETRY", "LANDMARK"} and not tags & {"FLASER", "ODOM"}:
+        return "victoria"
+    if tags & set(CARMEN_TAGS) or (any(t.startswith("#") for t in tags) and "ODOM" in head):
+        return "carmen"
+    raise ReaderError(
+        f"{path}: unknown log format (expected an fgslam log, a CARMEN log, a ROS bag or a "
+        "Victoria Park file)"
+    )
+
+
+def open_log(path: StrPath, format: str | None = None, **options: Any):
+    """Open a log of any supported sensor-log format; ``options`` go to the reader
+    (``tolerant`` for all; CARMEN: ``mode``, ``no_return``; ROS: ``scan_topic``,
+    ``odom_topic``, ``range_topics``, ``laser_mount``, ``range_mounts``)."""
+    fmt = format or sniff_format(path)
+    if fmt == "fgslam":
+        from fgslam.logfile import LogReader
+
+        return LogReader(path, tolerant=bool(options.get("tolerant", False)))
+    if fmt == "carmen":
+        from fgslam.readers.carmen import CarmenLog
+
+        keys = ("mode", "no_return", "tolerant", "reference")
+        return CarmenLog(path, **{k: v for k, v in options.items() if k in keys})
+    if fmt == "ros":
+        from fgslam.readers.ros import RosBag
+
+        keys = (
+            "scan_topic",
+            "odom_topic",
+            "range_topics",
+            "laser_mount",
+            "range_mounts",
+            "tolerant",
+        )
+        return RosBag(path, **{k: v for k, v in options.items() if k in keys})
+    if fmt == "victoria":
+        raise ReaderError(
+            f"{path}: a Victoria Park file holds odometry steps and landmark sightings, not "
+            "sensor data: run it with experiments/real_victoria_park.py "
+            "(fgslam.slam.pointslam)"
+        )
+    raise ReaderError(f"unknown format {fmt!r}; expected one of {FORMATS}")

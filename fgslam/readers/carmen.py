@@ -1,0 +1,351 @@
+"""CARMEN logs (``FLASER``, ``ROBOTLASER1``, ``ODOM``, ``TRUEPOS``; gzipped or not).
+
+Records (whitespace separated; ``#`` lines are comments)::
+
+    FLASER n r_1 .. r_n x y theta odom_x odom_y odom_theta timestamp host logger_timestamp
+    ROBOTLASER1 type start_angle fov resolution max_range accuracy remission_mode
+        n r_1 .. r_n m e_1 .. e_m laser_x laser_y laser_theta x y theta tv rv
+        forward_safety side_safety turn_axis timestamp host logger_timestamp
+    ODOM x y theta tv rv accel timestamp host logger_timestamp
+    TRUEPOS true_x true_y true_theta odom_x odom_y odom_theta timestamp host logger_timestamp
+    PARAM name value host timestamp
+
+Two kinds of log (``mode``, detected by default):
+
+- **corrected** (written by a SLAM run, e.g. GMapping's, as in ``../shared/data``): both
+  FLASER pose fields hold the corrected pose P_k, the ``ODOM`` lines between scans hold
+  P_{k-1} composed with the raw odometry since scan k-1, and an ``ODOM`` line stamped 0 after
+  each scan repeats P_k. The raw odometry increment between scans k-1 and k is therefore
+  ``inverse(P_{k-1}) * ODOM_before_k`` (``ODOM_before_k``: the last ODOM line before scan k);
+  it becomes one odometry sample stamped at scan k, and P_k a ``TruthPose`` (the
+  *reference* trajectory, not ground truth).
+- **raw**: ``ODOM`` lines are cumulative wheel odometry; each one's increment over the
+  previous one becomes an odometry sample. ``TRUEPOS`` lines (simulated logs) are ground
+  truth.
+
+Odometry increments become encoder ticks of the virtual differential drive of
+:func:`fgslam.readers.common.derived_config` (:class:`~fgslam.readers.common.VirtualDrive`).
+Ranges at or beyond ``no_return`` (m, the LMS reports no return as 81.91) or <= 0 are NaN.
+Records of other types (``NEFF``, ``RLASER``, ``SYNC``, ...) are skipped and counted. A scan
+stamped earlier than the previous scan is skipped and counted (its odometry carried to the
+next sample); odometry stamped backwards is carried into the next sample: events are never
+reordered and every emitted stream is monotonic.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+
+import numpy as np
+
+from fgslam.events import Event, LaserScan, TruthPose
+from fgslam.readers.common import (
+    ReaderError,
+    Source,
+    StrPath,
+    VirtualDrive,
+    compose,
+    derived_config,
+    open_lines,
+    relative,
+)
+
+MODES = ("auto", "corrected", "raw")
+NO_RETURN = 80.0
+LASER_TAGS = ("FLASER", "ROBOTLASER1")
+USED_TAGS = ("FLASER", "ROBOTLASER1", "ODOM", "TRUEPOS", "PARAM")
+
+
+class _Bad(Exception):
+    pass
+
+
+def _floats(tok: list[str], what: str) -> list[float]:
+    try:
+        out = [float(x) for x in tok]
+    except ValueError:
+        raise _Bad(f"{what}: expected numbers") from None
+    if not all(math.isfinite(v) for v in out):
+        raise _Bad(f"{what}: expected finite numbers")
+    return out
+
+
+def _int(tok: str, what: str) -> int:
+    try:
+        v = int(tok)
+    except ValueError:
+        raise _Bad(f"{what}: expected an integer, got {tok[:20]!r}") from None
+    if v < 0 or v > 100000:
+        raise _Bad(f"{what}: {v} out of range")
+    return v
+
+
+def parse_record(f: list[str]) -> dict:
+    """One CARMEN record (tokens) as a dict with ``tag``, ``t`` and its fields; raises
+    ``_Bad`` for a malformed record of a known type."""
+    tag = f[0]
+    if tag == "FLASER":
+        if len(f) < 2:
+            raise _Bad("FLASER: no beam count")
+        n = _int(f[1], "FLASER n")
+        if len(f) != n + 11:
+            raise _Bad(f"FLASER: expected {n + 11} fields for n={n}, got {len(f)}")
+        v = _floats(f[2 : n + 9], "FLASER")
+        return {
+            "tag": tag,
+            "ranges": np.array(v[:n]),
+            "pose": tuple(v[n : n + 3]),
+            "odom": tuple(v[n + 3 : n + 6]),
+            "t": v[n + 6],
+            "fov": 180.0,
+            "start": -math.pi / 2,
+            "laser_pose": None,
+        }
+    if tag == "ROBOTLASER1":
+        if len(f) < 9:
+            raise _Bad("ROBOTLASER1: too few fields")
+        n = _int(f[8], "ROBOTLASER1 n")
+        if len(f) < 10 + n:
+            raise _Bad("ROBOTLASER1: too few fields for its ranges")
+        m = _int(f[9 + n], "ROBOTLASER1 remission count")
+        if len(f) != 10 + n + m + 15:
+            raise _Bad(f"ROBOTLASER1: expected {25 + n + m} fields, got {len(f)}")
+        head = _floats(f[2:7], "ROBOTLASER1")
+        ranges = _floats(f[9 : 9 + n], "ROBOTLASER1 ranges")
+        tail = _floats(f[10 + n + m : 10 + n + m + 12], "ROBOTLASER1")
+        fov = math.degrees(head[1])
+        if not 0 < fov <= 360:
+            raise _Bad(f"ROBOTLASER1: field of view {fov} deg")
+        return {
+            "tag": tag,
+            "ranges": np.array(ranges),
+            "pose": tuple(tail[3:6]),
+            "odom": tuple(tail[3:6]),
+            "laser_pose": tuple(tail[0:3]),
+            "t": _floats([f[10 + n + m + 12]], "ROBOTLASER1 timestamp")[0],
+            "fov": fov,
+            "start": head[0],
+        }
+    if tag == "ODOM":
+        if len(f) != 10:
+            raise _Bad(f"ODOM: expected 10 fields, got {len(f)}")
+        v = _floats(f[1:8], "ODOM")
+        return {"tag": tag, "pose": tuple(v[0:3]), "t": v[6]}
+    if tag == "TRUEPOS":
+        if len(f) != 10:
+            raise _Bad(f"TRUEPOS: expected 10 fields, got {len(f)}")
+        v = _floats(f[1:8], "TRUEPOS")
+        return {"tag": tag, "pose": tuple(v[0:3]), "odom": tuple(v[3:6]), "t": v[6]}
+    if tag == "PARAM":
+        if len(f) < 3:
+            raise _Bad("PARAM: expected 'PARAM name value ...'")
+        return {"tag": tag, "name": f[1], "value": f[2], "t": None}
+    return {"tag": tag, "t": None}
+
+
+class CarmenLog(Source):
+    """A CARMEN log as fgslam events; see the module documentation."""
+
+    format = "carmen"
+
+    def __init__(
+        self,
+        path: StrPath,
+        mode: str = "auto",
+        no_return: float = NO_RETURN,
+        tolerant: bool = False,
+        reference: bool = True,
+    ) -> None:
+        super().__init__(path)
+        if mode not in MODES:
+            raise ReaderError(f"unknown CARMEN mode {mode!r}; expected one of {MODES}")
+        self.no_return = float(no_return)
+        self.tolerant = tolerant
+        self.reference = reference
+        self._probe(mode)
+
+    # ------------------------------------------------------------------ header
+
+    def _records(self, strict: bool | None = None) -> Iterator[tuple[int, dict]]:
+        strict = not self.tolerant if strict is None else strict
+        for lineno, text in open_lines(self.path):
+            f = text.split()
+            if not f or f[0].startswith("#"):
+                continue
+            try:
+                rec = parse_record(f)
+            except _Bad as exc:
+                msg = f"{self.name}:{lineno}: {exc}"
+                if strict:
+                    raise ReaderError(msg) from None
+                yield lineno, {"tag": "bad", "reason": f"bad {f[0]} record", "message": msg}
+                continue
+            yield lineno, rec
+
+    def _probe(self, mode: str) -> None:
+        """Laser geometry, laser offset and the kind of log, from the records up to the
+        first scan (and the record after it)."""
+        first = None
+        offset = 0.0
+        after_first: dict | None = None
+        for _, rec in self._records(strict=False):
+            if rec["tag"] == "PARAM" and rec["name"] == "robot_frontlaser_offset":
+                try:
+                    offset = float(rec["value"])
+                except ValueError:
+                    pass
+            if first is not None and rec["tag"] in ("ODOM", *LASER_TAGS):
+                after_first = rec
+                break
+            if rec["tag"] in LASER_TAGS:
+                first = rec
+        if first is None:
+            raise ReaderError(
+                f"{self.name}: no FLASER or ROBOTLASER1 record: not a CARMEN laser log"
+            )
+        n = len(first["ranges"])
+        mount = (offset, 0.0, 0.0)
+        if first["laser_pose"] is not None:
+            lp, rp = first["laser_pose"], first["pose"]
+            mount = tuple(relative(rp, lp))
+        yaw = first["start"] + math.radians(first["fov"]) / 2
+        mount = (mount[0], mount[1], mount[2] + yaw)
+        self.n_beams = n
+        self.config = derived_config(n, first["fov"], max_range=self.no_return, mount=mount)
+        if mode == "auto":
+            corrected = (
+                first["tag"] == "FLASER"
+                and first["pose"] == first["odom"]
+                and after_first is not None
+                and after_first["tag"] == "ODOM"
+                and after_first["t"] == 0.0
+                and after_first["pose"] == first["pose"]
+            )
+            mode = "corrected" if corrected else "raw"
+        self.mode = mode
+        if mode == "corrected" and self.reference:
+            self.reference_kind = "reference"
+        self.world = f"CARMEN log {self.name.rsplit('/', 1)[-1]}"
+        self.meta = {
+            "source_format": "carmen",
+            "source": self.name,
+            "carmen_mode": mode,
+            "laser": f"{n} beams over {first['fov']:g} deg",
+        }
+        if self.reference_kind:
+            self.meta["reference"] = "corrected poses of the log (a SLAM result, not ground truth)"
+
+    # ------------------------------------------------------------------ events
+
+    def __iter__(self) -> Iterator[Event]:
+        drive = VirtualDrive(self.config)
+        pr = self.problems
+        last_scan_t = -math.inf
+        last_odo_t = -math.inf
+        base = (0.0, 0.0, 0.0)  # corrected: P_{k-1}; raw: the last ODOM pose used
+        odo_rel = np.zeros(3)  # corrected: the last ODOM relative to base
+        carried = np.zeros(3)  # motion not yet delivered (an increment)
+        have_odom = False
+        for lineno, rec in self._records():
+            tag = rec["tag"]
+            if tag == "bad":
+                pr.skip(rec["reason"], rec["message"])
+                continue
+            if tag not in USED_TAGS:
+                pr.skip(f"unknown record {tag[:20]}")
+                continue
+            if tag == "PARAM":
+                continue
+            t = rec["t"]
+            if tag == "ODOM":
+                if self.mode == "corrected":
+                    if t == 0.0:
+                        continue  # the repeat of the corrected pose after a scan
+                    odo_rel = relative(base, rec["pose"])
+                    have_odom = True
+                    continue
+                if not have_odom:
+                    base, have_odom = rec["pose"], True
+                    last_odo_t = t
+                    continue
+                inc = relative(base, rec["pose"])
+                base = rec["pose"]
+                carried = compose(carried, inc)
+                if t < last_odo_t or t < last_scan_t:
+                    pr.backwards["ODOM"] += 1
+                    continue
+                last_odo_t = t
+                yield drive.ticks(t, carried)
+                carried = np.zeros(3)
+                continue
+            if tag == "TRUEPOS":
+                if self.reference and self.mode == "raw":
+                    self.reference_kind = "ground truth"
+                    if t >= last_odo_t:
+                        yield TruthPose(t, *rec["pose"])
+                continue
+            # a scan
+            ranges = np.asarray(rec["ranges"], dtype=float)
+            if ranges.size != self.n_beams:
+                pr.skip(
+                    "scan with another beam count",
+                    f"{self.name}:{lineno}: {ranges.size} beams, the log's laser has "
+                    f"{self.n_beams}",
+                )
+                continue
+            if self.mode == "corrected":
+                carried = compose(carried, odo_rel)
+                base, odo_rel = rec["pose"], np.zeros(3)
+            elif not have_odom:  # raw log without ODOM lines: the scan's odometry field
+                if last_scan_t > -math.inf:
+                    carried = compose(carried, relative(base, rec["odom"]))
+                base = rec["odom"]
+            if t < last_scan_t or t < last_odo_t:
+                pr.backwards[tag] += 1
+                continue  # the scan is dropped; its motion stays in `carried`
+            if self.mode == "corrected" or not have_odom:
+                yield drive.ticks(t, carried)
+                carried = np.zeros(3)
+                last_odo_t = t
+            if self.mode == "corrected" and self.reference:
+                yield TruthPose(t, *rec["pose"])
+            last_scan_t = t
+            ranges = ranges.copy()
+            ranges[(ranges >= self.no_return) | (ranges <= 0)] = np.nan
+            yield LaserScan(t, ranges)
+
+
+def odometry_check(path: StrPath) -> dict[str, np.ndarray]:
+    """The data behind the corrected-log odometry rule, per scan k >= 1 of a corrected log:
+    ``increment`` = inverse(P_{k-1}) * ODOM_before_k (the rule), ``corrected`` = inverse(P_{k-1})
+    * P_k, ``first_step`` = the first ODOM line after scan k-1 relative to P_{k-1} (small if the
+    ODOM lines restart from the corrected pose), ``jump`` = the same line relative to
+    ODOM_before_{k-1} (small if they held cumulative raw odometry instead), and ``global`` =
+    inverse(ODOM_before_{k-1}) * ODOM_before_k (the increment under that other reading)."""
+    prev_pose = prev_before = None
+    before = first = None
+    out: dict[str, list] = {
+        k: [] for k in ("increment", "corrected", "first_step", "jump", "global")
+    }
+    for _, text in open_lines(path):
+        f = text.split()
+        if not f or f[0] not in ("ODOM", "FLASER"):
+            continue
+        rec = parse_record(f)
+        if rec["tag"] == "ODOM":
+            if rec["t"] == 0.0:
+                continue
+            before = rec["pose"]
+            if first is None:
+                first = rec["pose"]
+            continue
+        if prev_pose is not None and before is not None and first is not None:
+            out["increment"].append(relative(prev_pose, before))
+            out["corrected"].append(relative(prev_pose, rec["pose"]))
+            out["first_step"].append(relative(prev_pose, first))
+            ref = prev_before if prev_before is not None else prev_pose
+            out["global"].append(relative(ref, before))
+            out["jump"].append(relative(ref, first))
+        prev_pose, prev_before, first = rec["pose"], before, None
+    return {k: np.array(v) for k, v in out.items()}

@@ -1,0 +1,270 @@
+"""What every foreign-log reader shares: the error type, the bookkeeping of skipped records and
+backward timestamps, the robot configuration derived from the data, and the virtual
+differential drive that turns pose increments into encoder ticks.
+
+Readers yield the project's own events (:mod:`fgslam.events`), so everything downstream (front
+end, runner, backends, ``fgslam convert``) works on them unchanged. Units SI, REP-103 frames.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import gzip
+import io
+import math
+import zlib
+from collections import Counter
+from collections.abc import Iterator
+from os import PathLike
+from typing import IO, Any
+
+import numpy as np
+
+from fgslam.config import Mount, RobotConfig, load_config
+from fgslam.errors import UserError
+from fgslam.events import Event, OdometryEvent
+
+StrPath = str | PathLike[str]
+MAX_PROBLEMS = 20
+
+# The virtual differential drive of logs that give odometry as poses (CARMEN, ROS):
+# 0.1 mm per tick on a 0.5 m wheelbase, odometry noise per sample as in paper eq 5.
+VIRTUAL_METRES_PER_TICK = 1e-4
+VIRTUAL_WHEELBASE = 0.5
+VIRTUAL_ENCODER_STEPS = 10000
+VIRTUAL_K = 0.05  # sigma(L) = 0.05 L per sample, each wheel (k_r, k_l)
+VIRTUAL_K_D = 0.05  # sigma(D) = 0.05 D per sample (scales with the turn of the sample)
+
+
+class ReaderError(UserError, ValueError):
+    """A foreign log cannot be read; the message is one line naming file (and line)."""
+
+
+class Problems:
+    """Counts of what a reader skipped or found odd, with the first messages kept.
+
+    ``skipped_by_reason``: records not turned into events, by reason (``"unknown record
+    NEFF"``, ``"bad FLASER record"``, ...); ``backwards``: timestamps earlier than the one
+    before them, by record type (the events keep their order and stamps: never reordered)."""
+
+    def __init__(self) -> None:
+        self.skipped_by_reason: Counter = Counter()
+        self.backwards: Counter = Counter()
+        self.problems: list[str] = []
+
+    @property
+    def skipped(self) -> int:
+        return sum(self.skipped_by_reason.values())
+
+    def skip(self, reason: str, message: str | None = None) -> None:
+        self.skipped_by_reason[reason] += 1
+        if message and len(self.problems) < MAX_PROBLEMS:
+            self.problems.append(message)
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "skipped": self.skipped,
+            "skipped_by_reason": dict(self.skipped_by_reason),
+            "timestamps_backwards": dict(self.backwards),
+            "problems": list(self.problems),
+        }
+
+
+class TimeCheck:
+    """Counts timestamps going backwards per stream (record type), never reorders."""
+
+    def __init__(self, problems: Problems) -> None:
+        self.last: dict[str, float] = {}
+        self.problems = problems
+
+    def __call__(self, stream: str, t: float) -> bool:
+        """True if ``t`` is not earlier than the last stamp of ``stream``."""
+        last = self.last.get(stream, -math.inf)
+        if t < last:
+            self.problems.backwards[stream] += 1
+            return False
+        self.last[stream] = t
+        return True
+
+
+def open_lines(path: StrPath) -> Iterator[tuple[int, str]]:
+    """(line number, text without EOL) of a text file, gzip detected by its magic bytes.
+    Corrupt or truncated gzip data and undecodable bytes raise :class:`ReaderError`."""
+    name = str(path)
+    try:
+        raw = open(path, "rb")
+    except OSError as exc:
+        raise ReaderError(f"{name}: cannot open: {exc.strerror or exc}") from None
+    gz = raw.peek(2)[:2] == b"\x1f\x8b"
+    f: IO[bytes] = gzip.GzipFile(fileobj=raw, mode="rb") if gz else raw
+    n = 0
+    try:
+        while True:
+            try:
+                line = f.readline(1 << 23)
+            except (EOFError, zlib.error, OSError) as exc:
+                what = "corrupt or truncated gzip data" if gz else "read error"
+                where = f"after line {n}" if n else "at the start"
+                raise ReaderError(f"{name}: {what} {where} ({exc})") from None
+            if not line:
+                return
+            n += 1
+            yield n, line.decode("utf-8", errors="replace").rstrip("\r\n")
+    finally:
+        f.close()
+        raw.close()
+
+
+def is_gzip(path: StrPath) -> bool:
+    with open(path, "rb") as f:
+        return f.read(2) == b"\x1f\x8b"
+
+
+def head_text(path: StrPath, nbytes: int = 4096) -> str:
+    """The first bytes of a (possibly gzipped) file as text, for format sniffing."""
+    with open(path, "rb") as raw:
+        data = raw.read(2)
+        raw.seek(0)
+        if data == b"\x1f\x8b":
+            try:
+                with gzip.GzipFile(fileobj=raw) as g:
+                    data = g.read(nbytes)
+            except (EOFError, zlib.error, OSError):
+                data = b""
+        else:
+            data = raw.read(nbytes)
+    return io.BytesIO(data).read().decode("utf-8", errors="replace")
+
+
+def derived_config(
+    n_beams: int,
+    fov_deg: float = 180.0,
+    *,
+    max_range: float = 80.0,
+    sigma_range: float = 0.01,
+    range_resolution: float = 0.01,
+    mount: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    name: str = "log robot",
+) -> RobotConfig:
+    """The default configuration with the laser of the log (``n_beams`` over ``fov_deg``,
+    first beam at -fov/2, mounted at ``mount`` (x, y, yaw rad), stamps without a known
+    transmission delay) and the virtual differential drive of the reader's odometry (0.1 mm
+    per tick, wheelbase 0.5 m, k_r = k_l = k_d = 0.05 per sample). The sonar section stays the
+    default; these logs have no advanced sonar."""
+    cfg = load_config()
+    laser = dataclasses.replace(
+        cfg.laser,
+        mount=Mount(float(mount[0]), float(mount[1]), math.degrees(mount[2])),
+        n_beams=int(n_beams),
+        fov_deg=float(fov_deg),
+        range_resolution=range_resolution,
+        sigma_range=sigma_range,
+        max_range=max_range,
+        delay_min=0.0,
+        delay_max=0.0,
+        baud_rate=500000,
+    )
+    odo = dataclasses.replace(
+        cfg.odometry,
+        wheelbase=VIRTUAL_WHEELBASE,
+        wheel_radius_right=VIRTUAL_METRES_PER_TICK * VIRTUAL_ENCODER_STEPS / (2 * math.pi),
+        wheel_radius_left=VIRTUAL_METRES_PER_TICK * VIRTUAL_ENCODER_STEPS / (2 * math.pi),
+        encoder_steps_per_rev=VIRTUAL_ENCODER_STEPS,
+        k_r=VIRTUAL_K,
+        k_l=VIRTUAL_K,
+        k_d=VIRTUAL_K_D,
+    )
+    return dataclasses.replace(
+        cfg,
+        robot=dataclasses.replace(cfg.robot, name=name),
+        laser=laser,
+        odometry=odo,
+        source="<derived from the log>",
+    )
+
+
+def relative(a: tuple[float, float, float], b: tuple[float, float, float]) -> np.ndarray:
+    """inverse(a) * b for poses (x, y, theta): b in the frame of a, heading wrapped."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    dx, dy = b[0] - a[0], b[1] - a[1]
+    dth = math.remainder(b[2] - a[2], 2 * math.pi)
+    return np.array([c * dx + s * dy, -s * dx + c * dy, dth])
+
+
+def compose(a: tuple[float, float, float], d: tuple[float, float, float]) -> np.ndarray:
+    """a * d for poses (x, y, theta)."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    return np.array(
+        [
+            a[0] + c * d[0] - s * d[1],
+            a[1] + s * d[0] + c * d[1],
+            math.remainder(a[2] + d[2], 2 * math.pi),
+        ]
+    )
+
+
+class VirtualDrive:
+    """Pose increments -> encoder ticks of a virtual differential drive.
+
+    An increment (dx, dy, dtheta) in the frame of the previous pose becomes one odometry
+    sample with arc length ``ds = sign(dx) hypot(dx, dy)`` and heading change ``dtheta``, i.e.
+    wheel distances ``L_r = ds + dtheta D/2``, ``L_l = ds - dtheta D/2``. The heading change
+    is exact; the position is exact when the robot moved along the chord of its turn (no
+    sideways slip), otherwise off by ``|ds| |atan2(dy, dx) - dtheta/2|``. Ticks are rounded
+    with the remainder carried to the next sample, so quantisation (0.1 mm) never accumulates.
+    """
+
+    def __init__(self, cfg: RobotConfig) -> None:
+        o = cfg.odometry
+        self.D = o.wheelbase
+        self.mr, self.ml = o.metres_per_tick_right, o.metres_per_tick_left
+        self.cum_r = self.cum_l = 0.0
+        self.tick_r = self.tick_l = 0
+
+    def ticks(self, t: float, inc: tuple[float, float, float]) -> OdometryEvent:
+        dx, dy, dth = (float(v) for v in inc)
+        ds = math.copysign(math.hypot(dx, dy), dx) if dx != 0 else math.hypot(dx, dy)
+        self.cum_r += ds + 0.5 * dth * self.D
+        self.cum_l += ds - 0.5 * dth * self.D
+        tr, tl = round(self.cum_r / self.mr), round(self.cum_l / self.ml)
+        ev = OdometryEvent(t, tr - self.tick_r, tl - self.tick_l)
+        self.tick_r, self.tick_l = tr, tl
+        return ev
+
+
+class Source:
+    """A readable log: ``config``, ``world``, ``meta``, ``reference_kind`` (``"ground truth"``,
+    ``"reference"`` or None: what the TruthPose events are), and events by iteration;
+    ``problems`` counts what was skipped. The attributes ``skipped`` and ``skipped_by_reason``
+    mirror :class:`fgslam.logfile.LogReader`."""
+
+    format = "?"
+    config: RobotConfig
+    world: str = ""
+    reference_kind: str | None = None
+
+    def __init__(self, path: StrPath) -> None:
+        self.path = path
+        self.name = str(path)
+        self.meta: dict[str, Any] = {}
+        self.problems = Problems()
+
+    @property
+    def skipped(self) -> int:
+        return self.problems.skipped
+
+    @property
+    def skipped_by_reason(self) -> dict[str, int]:
+        return dict(self.problems.skipped_by_reason)
+
+    def __iter__(self) -> Iterator[Event]:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        pass
+
+    def __enter__(self) -> Source:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,236 @@
+"""ROS 1 and ROS 2 bags through the ``rosbags`` package (``pip install fgslam[ros]``).
+
+- ``sensor_msgs/LaserScan`` (``scan_topic``) -> :class:`~fgslam.events.LaserScan`: the beam
+  count, field of view (``angle_max - angle_min``) and the mount's yaw (the middle of the
+  scan; ``laser_mount`` adds an offset x, y, yaw in rad) come from the first scan; ranges
+  outside ``[range_min, range_max]`` or not finite are NaN.
+- ``nav_msgs/Odometry`` (``odom_topic``) -> encoder ticks of the virtual differential drive
+  (:class:`~fgslam.readers.common.VirtualDrive`): each message's pose relative to the
+  previous message's pose.
+- ``sensor_msgs/Range`` (``range_topics``, optional) -> :class:`~fgslam.events.SonarReading`
+  of sonar array i (the i-th topic, mounted at ``range_mounts[i]``, x, y, yaw in rad, default
+  the robot origin facing forward) with one ``plane`` echo at bearing 0 when the range lies
+  in ``[min_range, max_range]``, none otherwise. A plain ultrasonic ranger neither classifies
+  its echoes nor measures their bearing: this mapping treats every echo as a plane seen at
+  normal incidence, which is often wrong; use ``--sensors laser`` unless that holds.
+
+Times are the messages' header stamps. Topic names are chosen by option; left out, the only
+topic of the right type is taken. A bag without such a topic is a :class:`ReaderError`
+listing the topics it has. Header stamps that go backwards are counted: a scan or range
+reading is then skipped, an odometry message's motion is carried into the next one; nothing
+is reordered.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fgslam.config import Mount
+from fgslam.events import Event, LaserScan, SonarEcho, SonarReading
+from fgslam.readers.common import (
+    ReaderError,
+    Source,
+    StrPath,
+    VirtualDrive,
+    compose,
+    derived_config,
+    relative,
+)
+
+SCAN = "sensor_msgs/msg/LaserScan"
+ODOM = "nav_msgs/msg/Odometry"
+RANGE = "sensor_msgs/msg/Range"
+
+
+def _import():
+    try:
+        from rosbags.highlevel import AnyReader, AnyReaderError
+        from rosbags.typesys import Stores, get_typestore
+    except ImportError:  # pragma: no cover - depends on the installation
+        raise ReaderError(
+            "reading ROS bags needs the 'rosbags' package: pip install 'fgslam[ros]'"
+        ) from None
+    return AnyReader, AnyReaderError, Stores, get_typestore
+
+
+def is_bag(path: StrPath) -> bool:
+    """A ROS 2 bag directory (metadata.yaml) or a ROS 1 bag file (``#ROSBAG V2.0``)."""
+    p = Path(path)
+    if p.is_dir():
+        return (p / "metadata.yaml").exists()
+    try:
+        with open(p, "rb") as f:
+            return f.read(13) == b"#ROSBAG V2.0\n"
+    except OSError:
+        return False
+
+
+def _stamp(msg: Any) -> float:
+    s = msg.header.stamp
+    return float(s.sec) + 1e-9 * float(s.nanosec)
+
+
+def _yaw(q: Any) -> float:
+    return math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
+
+
+class RosBag(Source):
+    """A ROS 1 or ROS 2 bag as fgslam events; see the module documentation."""
+
+    format = "ros"
+
+    def __init__(
+        self,
+        path: StrPath,
+        scan_topic: str | None = None,
+        odom_topic: str | None = None,
+        range_topics: Sequence[str] = (),
+        laser_mount: tuple[float, float, float] = (0.0, 0.0, 0.0),
+        range_mounts: Sequence[tuple[float, float, float]] = (),
+        tolerant: bool = False,
+    ) -> None:
+        super().__init__(path)
+        AnyReader, AnyReaderError, Stores, get_typestore = _import()
+        self._AnyReader, self._AnyReaderError = AnyReader, AnyReaderError
+        self._typestore = get_typestore(Stores.ROS2_HUMBLE)
+        self.tolerant = tolerant
+        with self._open() as reader:
+            topics = {name: info.msgtype for name, info in reader.topics.items()}
+            self.scan_topic = self._pick(topics, scan_topic, SCAN, "--scan-topic")
+            self.odom_topic = self._pick(topics, odom_topic, ODOM, "--odom-topic")
+            self.range_topics = [
+                self._pick(topics, t, RANGE, "--range-topic") for t in range_topics
+            ]
+            first = None
+            conns = [c for c in reader.connections if c.topic == self.scan_topic]
+            for conn, _, raw in reader.messages(connections=conns):
+                first = reader.deserialize(raw, conn.msgtype)
+                break
+        if first is None:
+            raise ReaderError(f"{self.name}: topic {self.scan_topic} has no messages")
+        n = len(first.ranges)
+        fov = round(math.degrees(first.angle_max - first.angle_min), 4)  # float32 angles
+        if n < 2 or not 0 < fov <= 360:
+            raise ReaderError(f"{self.name}: first scan has {n} beams over {fov:g} deg")
+        yaw = 0.5 * (first.angle_min + first.angle_max) + laser_mount[2]
+        cfg = derived_config(
+            n,
+            fov,
+            max_range=float(first.range_max) if first.range_max > 0 else 80.0,
+            mount=(laser_mount[0], laser_mount[1], yaw),
+        )
+        if self.range_topics:
+            mounts = list(range_mounts) + [(0.0, 0.0, 0.0)] * len(self.range_topics)
+            base = cfg.sonar.arrays[0]
+            arrays = tuple(
+                dataclasses.replace(
+                    base,
+                    name=t,
+                    mount=Mount(m[0], m[1], math.degrees(m[2])),
+                    pan_min_deg=0.0,
+                    pan_max_deg=0.0,
+                )
+                for t, m in zip(self.range_topics, mounts, strict=False)
+            )
+            cfg = dataclasses.replace(cfg, sonar=dataclasses.replace(cfg.sonar, arrays=arrays))
+        self.config = cfg
+        self.n_beams = n
+        self.world = f"ROS bag {Path(self.name).name}"
+        self.meta = {
+            "source_format": "ros",
+            "source": self.name,
+            "scan_topic": self.scan_topic,
+            "odom_topic": self.odom_topic,
+            "range_topics": list(self.range_topics),
+            "laser": f"{n} beams over {fov:g} deg",
+        }
+
+    def _open(self):
+        try:
+            reader = self._AnyReader([Path(self.path)], default_typestore=self._typestore)
+            reader.open()
+            reader.close()
+        except (self._AnyReaderError, OSError, ValueError, KeyError) as exc:
+            raise ReaderError(f"{self.name}: cannot read the bag ({exc})") from None
+        return reader
+
+    def _pick(self, topics: dict[str, str], name: str | None, msgtype: str, option: str) -> str:
+        have = ", ".join(f"{t} ({m})" for t, m in sorted(topics.items())) or "none"
+        if name is not None:
+            if name not in topics:
+                raise ReaderError(f"{self.name}: no topic {name}; the bag has: {have}")
+            if topics[name] != msgtype:
+                raise ReaderError(
+                    f"{self.name}: topic {name} is {topics[name]}, expected {msgtype}"
+                )
+            return name
+        found = [t for t, m in topics.items() if m == msgtype]
+        if len(found) != 1:
+            what = "no" if not found else "more than one"
+            raise ReaderError(
+                f"{self.name}: {what} {msgtype} topic (choose one with {option}); "
+                f"the bag has: {have}"
+            )
+        return found[0]
+
+    def __iter__(self) -> Iterator[Event]:
+        drive = VirtualDrive(self.config)
+        pr = self.problems
+        last = -math.inf
+        last_odom_pose: tuple[float, float, float] | None = None
+        carried = np.zeros(3)
+        array_of = {t: i for i, t in enumerate(self.range_topics)}
+        wanted = {self.scan_topic, self.odom_topic, *self.range_topics}
+        with self._open() as reader:
+            conns = [c for c in reader.connections if c.topic in wanted]
+            for conn, _, raw in reader.messages(connections=conns):
+                try:
+                    msg = reader.deserialize(raw, conn.msgtype)
+                    t = _stamp(msg)
+                except Exception as exc:
+                    msg_text = f"{self.name}: {conn.topic}: cannot decode a message ({exc})"
+                    if not self.tolerant:
+                        raise ReaderError(msg_text) from None
+                    pr.skip(f"undecodable {conn.topic}", msg_text)
+                    continue
+                if conn.topic == self.odom_topic:
+                    p = msg.pose.pose
+                    pose = (float(p.position.x), float(p.position.y), _yaw(p.orientation))
+                    if last_odom_pose is None:
+                        last_odom_pose = pose
+                        last = max(last, t)
+                        continue
+                    carried = compose(carried, relative(last_odom_pose, pose))
+                    last_odom_pose = pose
+                    if t < last:
+                        pr.backwards[conn.topic] += 1
+                        continue
+                    last = t
+                    yield drive.ticks(t, carried)
+                    carried = np.zeros(3)
+                    continue
+                if t < last:
+                    pr.backwards[conn.topic] += 1
+                    continue
+                last = t
+                if conn.topic == self.scan_topic:
+                    r = np.asarray(msg.ranges, dtype=float)
+                    if r.size != self.n_beams:
+                        pr.skip("scan with another beam count")
+                        continue
+                    r = r.copy()
+                    bad = ~np.isfinite(r) | (r < msg.range_min) | (r > msg.range_max) | (r <= 0)
+                    r[bad] = np.nan
+                    yield LaserScan(t, r)
+                else:
+                    r = float(msg.range)
+                    echoes = ()
+                    if math.isfinite(r) and msg.min_range <= r <= msg.max_range and r > 0:
+                        echoes = (SonarEcho("plane", r, 0.0),)
+                    yield SonarReading(t, array_of[conn.topic], 0.0, echoes)
