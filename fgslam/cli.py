@@ -127,13 +127,14 @@ def _log_duration(path: str) -> float | None:
 
 def _cmd_run(args: argparse.Namespace) -> int:
     from fgslam.config import load_config
-    from fgslam.logfile import LogReader
+    from fgslam.readers import open_log
     from fgslam.slam.outputs import write_outputs
     from fgslam.slam.runner import run_slam
 
-    reader = LogReader(args.log, tolerant=args.tolerant)
+    reader = open_log(args.log, **_reader_options(args))
     cfg = load_config(args.config) if args.config else reader.config
-    total = _log_duration(args.log)
+    d = reader.meta.get("duration")
+    total = float(d) if isinstance(d, int | float) else None
     bar = _progress_bar(f"{args.backend}/{args.sensors}")
     t_first: list[float] = []
 
@@ -150,8 +151,37 @@ def _cmd_run(args: argparse.Namespace) -> int:
     rep = write_outputs(res, args.out, reader.meta.get("true_map"))
     if reader.skipped:
         print(f"skipped {reader.skipped} bad records: {dict(reader.skipped_by_reason)}")
+    _reader_notes(reader, rep, args.out)
     _print_summary(rep, args.out)
     return 0
+
+
+def _reader_options(args: argparse.Namespace) -> dict:
+    """Options of the foreign-log readers (fgslam.readers.open_log) from the command line."""
+    opts: dict = {"tolerant": args.tolerant, "format": args.format}
+    for key in ("scan_topic", "odom_topic", "range_topics", "carmen_mode"):
+        value = getattr(args, key, None)
+        if value:
+            opts["mode" if key == "carmen_mode" else key] = value
+    return opts
+
+
+def _reader_notes(reader, rep: dict, out: str) -> None:
+    """What a foreign-log reader found (records skipped, stamps going backwards), and where
+    the comparison trajectory is a reference rather than ground truth, say so in the report."""
+    problems = getattr(reader, "problems", None)
+    if problems is not None and not isinstance(problems, list):
+        back = dict(problems.backwards)
+        if back:
+            print(f"timestamps going backwards (kept in order, dropped or carried): {back}")
+        rep["reader"] = problems.summary()
+    kind = getattr(reader, "reference_kind", None)
+    if kind:
+        rep["truth_source"] = kind
+        if kind == "reference":
+            print("note: ATE is against the log's reference trajectory, not ground truth")
+    if problems is not None or kind:
+        (Path(out) / "report.json").write_text(json.dumps(rep, indent=2))
 
 
 def _print_summary(rep: dict, out: str) -> None:
@@ -249,6 +279,71 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_reader_arguments(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("foreign logs (docs/readers.md)")
+    g.add_argument(
+        "--format",
+        choices=["fgslam", "carmen", "ros"],
+        help="input format (default: detected from the file)",
+    )
+    g.add_argument(
+        "--carmen-mode",
+        choices=["auto", "corrected", "raw"],
+        help="CARMEN: corrected log (reference poses, odometry rebuilt) or raw (default auto)",
+    )
+    g.add_argument("--scan-topic", help="ROS: sensor_msgs/LaserScan topic (default: the only)")
+    g.add_argument("--odom-topic", help="ROS: nav_msgs/Odometry topic (default: the only)")
+    g.add_argument(
+        "--range-topic",
+        dest="range_topics",
+        action="append",
+        metavar="TOPIC",
+        help="ROS: sensor_msgs/Range topic read as a sonar array (repeatable)",
+    )
+
+
+def _cmd_convert(args: argparse.Namespace) -> int:
+    from collections import Counter
+
+    from fgslam.logfile import LogWriter
+    from fgslam.readers import open_log
+
+    reader = open_log(args.log, **_reader_options(args))
+    counts: Counter = Counter()
+    try:
+        with LogWriter(args.out, reader.config, reader.world, meta=reader.meta) as w:
+            for ev in reader:
+                w.write(ev)
+                counts[type(ev).__name__] += 1
+    except OSError as exc:
+        raise UserError(f"cannot write {args.out}: {exc.strerror or exc}") from None
+    kinds = ", ".join(f"{n} {k}" for k, n in sorted(counts.items())) or "no events"
+    print(f"wrote {args.out}: {kinds}")
+    problems = getattr(reader, "problems", None)
+    if problems is not None and not isinstance(problems, list):
+        if problems.skipped:
+            print(f"skipped: {dict(problems.skipped_by_reason)}")
+        if problems.backwards:
+            print(f"timestamps going backwards: {dict(problems.backwards)}")
+    elif reader.skipped:
+        print(f"skipped {reader.skipped} bad records: {dict(reader.skipped_by_reason)}")
+    kind = getattr(reader, "reference_kind", None)
+    if kind == "reference":
+        print("truth records hold the log's reference poses (not ground truth)")
+    return 0
+
+
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    from fgslam.evaluate_cli import evaluate_command
+
+    rep = evaluate_command(args)
+    print(rep.pop("_text"))
+    if args.out:
+        Path(args.out).write_text(json.dumps(rep, indent=2))
+        print(f"wrote {args.out}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="fgslam",
@@ -323,7 +418,8 @@ def build_parser() -> argparse.ArgumentParser:
             "and map.png into --out."
         ),
     )
-    p.add_argument("log", help="native log file (.log or .log.gz)")
+    p.add_argument("log", help="log: fgslam, CARMEN (.gz or not) or a ROS 1/2 bag")
+    _add_reader_arguments(p)
     p.add_argument(
         "--backend",
         choices=["ekf", "isam2", "batch"],
@@ -344,6 +440,45 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")
     p.set_defaults(func=_cmd_run)
+
+    p = sub.add_parser(
+        "convert",
+        help="convert a CARMEN log or a ROS bag into the native log",
+        description=(
+            "Read a CARMEN log (FLASER/ROBOTLASER1/ODOM, gzipped or not) or a ROS 1/2 bag "
+            "(LaserScan, Odometry, Range topics) and write the native log (docs/log-format.md; "
+            "'.gz' to compress) with the robot configuration derived from the data: the "
+            "laser's beams and field of view, odometry as ticks of a virtual differential "
+            "drive (0.1 mm per tick), reference poses as truth records. See docs/readers.md."
+        ),
+    )
+    p.add_argument("log", help="CARMEN log or ROS bag (or a native log, copied)")
+    _add_reader_arguments(p)
+    p.add_argument(
+        "--tolerant", action="store_true", help="skip malformed records instead of stopping"
+    )
+    p.add_argument("--out", required=True, metavar="FILE.log", help="log file to write")
+    p.set_defaults(func=_cmd_convert)
+
+    p = sub.add_parser(
+        "evaluate",
+        help="trajectory (and map) error against a reference: ATE, RPE, NEES, map error",
+        description=(
+            "Compare a TUM trajectory (e.g. a run's trajectory.tum) with a reference: a TUM "
+            "file, or a log with truth or reference poses (fgslam, CARMEN corrected). Poses "
+            "are matched by time (the reference interpolated). Prints and writes ATE after "
+            "SE(2) alignment (RMSE, mean, max), RPE over --rpe-delta metres of travel, NEES "
+            "with --covariances, map error with --map against a simulator log's true map."
+        ),
+    )
+    p.add_argument("trajectory", metavar="TRAJ", help="estimated trajectory (TUM) or run dir")
+    p.add_argument("--reference", required=True, metavar="REF", help="TUM file or log")
+    p.add_argument("--rpe-delta", type=float, default=1.0, metavar="METRES", help="default 1")
+    p.add_argument("--covariances", metavar="FILE", help="pose covariances (for the NEES)")
+    p.add_argument("--map", metavar="MAP.json", help="estimated map (for the map error)")
+    p.add_argument("--max-gap", type=float, metavar="S", help="ignore poses this far from REF")
+    p.add_argument("--out", metavar="report.json", help="write the report as JSON")
+    p.set_defaults(func=_cmd_evaluate)
 
     p = sub.add_parser(
         "compare",

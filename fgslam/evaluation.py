@@ -116,3 +116,167 @@ def read_tum(path: str | Path) -> tuple[NDArray[np.float64], NDArray[np.float64]
     qx, qy, qz, qw = data[:, 4], data[:, 5], data[:, 6], data[:, 7]
     yaw = np.arctan2(2 * (qw * qz + qx * qy), 1 - 2 * (qy**2 + qz**2))
     return data[:, 0], np.column_stack([data[:, 1], data[:, 2], yaw])
+
+
+# ---------------------------------------------------------------------------------------------
+# Relative pose error, matching by time, reports (fgslam evaluate)
+
+
+def _relative_poses(poses: NDArray[np.float64], i: NDArray, j: NDArray) -> NDArray[np.float64]:
+    """inverse(poses[i]) * poses[j], row by row, heading wrapped."""
+    a, b = poses[i], poses[j]
+    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
+    dx, dy = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
+    return np.column_stack([c * dx + s * dy, -s * dx + c * dy, wrap_angles(b[:, 2] - a[:, 2])])
+
+
+def rpe(est: ArrayLike, ref: ArrayLike, delta: float = 1.0) -> dict[str, float]:
+    """Relative pose error over distance deltas: for every pose i, the first pose j at which
+    the reference has travelled at least ``delta`` m along its path since i; the error of the
+    estimated motion i -> j against the reference motion, inverse(ref_ij) * est_ij. Returns
+    RMSE, mean and max of its translation (m) and of its rotation (deg), and the number of
+    pairs (0 when the reference never travels ``delta``: the other values are then NaN)."""
+    est = np.asarray(est, dtype=float)
+    ref = np.asarray(ref, dtype=float)
+    if est.shape != ref.shape:
+        raise ValueError(f"estimate {est.shape} and reference {ref.shape} differ in shape")
+    if delta <= 0:
+        raise ValueError(f"delta must be positive, got {delta}")
+    dist = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(ref[:, :2], axis=0).T))])
+    i = np.arange(len(ref))
+    j = np.searchsorted(dist, dist + delta - 1e-12)
+    ok = j < len(ref)
+    i, j = i[ok], j[ok]
+    nan = float("nan")
+    if not len(i):
+        return {k: nan for k in _RPE_KEYS} | {"pairs": 0, "delta_m": delta}
+    e = _relative_poses(
+        np.vstack([_relative_poses(ref, i, j), _relative_poses(est, i, j)]),
+        np.arange(len(i)),
+        np.arange(len(i), 2 * len(i)),
+    )
+    tr = np.hypot(e[:, 0], e[:, 1])
+    rot = np.degrees(np.abs(e[:, 2]))
+    return {
+        "trans_rmse": float(np.sqrt(np.mean(tr**2))),
+        "trans_mean": float(tr.mean()),
+        "trans_max": float(tr.max()),
+        "rot_rmse_deg": float(np.sqrt(np.mean(rot**2))),
+        "rot_mean_deg": float(rot.mean()),
+        "rot_max_deg": float(rot.max()),
+        "pairs": len(i),
+        "delta_m": delta,
+    }
+
+
+_RPE_KEYS = (
+    "trans_rmse",
+    "trans_mean",
+    "trans_max",
+    "rot_rmse_deg",
+    "rot_mean_deg",
+    "rot_max_deg",
+)
+
+
+def match_times(
+    t_est: ArrayLike, t_ref: ArrayLike, ref: ArrayLike, max_gap: float | None = None
+) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
+    """The estimated poses whose time lies within the reference's time span (and, with
+    ``max_gap``, within ``max_gap`` s of a reference pose), and the reference interpolated at
+    their times: (mask over t_est, reference poses at t_est[mask])."""
+    t_est = np.asarray(t_est, dtype=float)
+    t_ref = np.asarray(t_ref, dtype=float)
+    if len(t_ref) == 0:
+        return np.zeros(len(t_est), dtype=bool), np.zeros((0, 3))
+    if np.any(np.diff(t_ref) < 0):
+        raise ValueError("reference times must not go backwards")
+    mask = (t_est >= t_ref[0]) & (t_est <= t_ref[-1])
+    if max_gap is not None and len(t_ref):
+        k = np.clip(np.searchsorted(t_ref, t_est), 1, max(len(t_ref) - 1, 1))
+        gap = np.minimum(
+            np.abs(t_est - t_ref[k - 1]), np.abs(t_ref[np.minimum(k, len(t_ref) - 1)] - t_est)
+        )
+        mask &= gap <= max_gap
+    return mask, interpolate_poses(t_ref, ref, t_est[mask])
+
+
+def evaluate_trajectory(
+    t_est: ArrayLike,
+    est: ArrayLike,
+    t_ref: ArrayLike,
+    ref: ArrayLike,
+    rpe_delta: float = 1.0,
+    covs: ArrayLike | None = None,
+    max_gap: float | None = None,
+) -> dict:
+    """ATE (after SE(2) alignment), RPE over ``rpe_delta`` m, and with ``covs`` (world-frame
+    3x3 per estimated pose) the NEES, of an estimate against a reference matched by time."""
+    est = np.asarray(est, dtype=float).reshape(-1, 3)
+    mask, ref_m = match_times(t_est, t_ref, ref, max_gap)
+    n = int(mask.sum())
+    if n < 2:
+        raise ValueError(
+            f"only {n} estimated poses fall within the reference's time span: nothing to compare"
+        )
+    e = est[mask]
+    out: dict = {
+        "poses_compared": n,
+        "poses_outside_reference": int(len(est) - n),
+        "ate": ate(e, ref_m),
+        "ate_unaligned": ate(e, ref_m, align=False),
+        "rpe": rpe(e, ref_m, rpe_delta),
+    }
+    if covs is not None:
+        c = np.asarray(covs, dtype=float).reshape(-1, 3, 3)[mask]
+        out["nees"] = nees(e, c, ref_m)
+    return out
+
+
+def map_error(landmarks: list[dict], true_map: dict) -> dict:
+    """Map error of estimated landmarks (``map.json``'s ``landmarks``) against the true
+    features of a simulator world (a log's ``true_map`` metadata): per kind, the median and
+    mean distance to the nearest true feature of that kind (lines: |d| and angle; corners and
+    points: position; points may also match corners)."""
+    lines = [ln for ln in true_map.get("lines", []) if ln.get("laser", True)]
+    errs: dict[str, list[float]] = {"line_d": [], "line_alpha_deg": [], "corner": [], "point": []}
+    for lm in landmarks:
+        kind = lm.get("kind")
+        if kind == "line" and lines:
+            a, d = lm["alpha"], lm["d"]
+            best = min(
+                lines,
+                key=lambda t: (
+                    abs(wrap_angles(np.array([t["alpha"] - a]))[0]) * 3.0 + abs(t["d"] - d)
+                ),
+            )
+            errs["line_d"].append(abs(best["d"] - d))
+            errs["line_alpha_deg"].append(
+                math.degrees(abs(wrap_angles(np.array([best["alpha"] - a]))[0]))
+            )
+        elif kind in ("corner", "point"):
+            pts = list(true_map.get("corners" if kind == "corner" else "points", []))
+            if kind == "point":
+                pts += true_map.get("corners", [])
+            if pts:
+                errs[kind].append(min(math.hypot(p["x"] - lm["x"], p["y"] - lm["y"]) for p in pts))
+    return {
+        k: {"median": float(np.median(v)), "mean": float(np.mean(v)), "n": len(v)}
+        for k, v in errs.items()
+        if v
+    }
+
+
+def write_covariances(path: str | Path, t: ArrayLike, covs: ArrayLike) -> None:
+    """Pose covariances next to a TUM file: ``timestamp`` and the 9 entries of the world-frame
+    3x3 (x, y, theta) covariance, row by row, one pose a line."""
+    t = np.asarray(t, dtype=float)
+    covs = np.asarray(covs, dtype=float).reshape(-1, 9)
+    np.savetxt(path, np.column_stack([t, covs]), fmt="%.9g", header="timestamp c_xx c_xy ... c_tt")
+
+
+def read_covariances(path: str | Path) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    data = np.loadtxt(path, comments="#", ndmin=2)
+    if data.shape[1] != 10:
+        raise ValueError(f"{path}: expected 10 columns (timestamp and a 3x3 covariance)")
+    return data[:, 0], data[:, 1:].reshape(-1, 3, 3)

@@ -1,0 +1,120 @@
+"""``fgslam evaluate``: a trajectory (TUM) against a reference (TUM, or a log with truth or
+reference poses), with the metrics of :mod:`fgslam.evaluation`."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fgslam import evaluation
+from fgslam.errors import UserError
+from fgslam.events import TruthPose
+
+
+def _looks_like_tum(path: Path) -> bool:
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4096)
+    except OSError as exc:
+        raise UserError(f"{path}: cannot open: {exc.strerror or exc}") from None
+    if head[:2] == b"\x1f\x8b":
+        return False
+    for line in head.decode("utf-8", errors="replace").splitlines():
+        tok = line.split()
+        if not tok or tok[0].startswith("#"):
+            continue
+        try:
+            [float(x) for x in tok]
+        except ValueError:
+            return False
+        return len(tok) == 8
+    return False
+
+
+def _read_tum(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    try:
+        t, p = evaluation.read_tum(path)
+    except (ValueError, OSError) as exc:
+        raise UserError(f"{path}: not a TUM trajectory ({exc})") from None
+    if np.any(np.diff(t) < 0):
+        raise UserError(f"{path}: timestamps go backwards")
+    return t, p
+
+
+def load_reference(path: str | Path, **options: Any) -> tuple[np.ndarray, np.ndarray, dict, str]:
+    """Times, poses, true map (or {}) and what the poses are, from a TUM file or a log."""
+    p = Path(path)
+    if p.is_file() and _looks_like_tum(p):
+        t, poses = _read_tum(p)
+        return t, poses, {}, "reference trajectory (TUM)"
+    from fgslam.readers import open_log
+
+    reader = open_log(p, **options)
+    t, poses = [], []
+    last = -np.inf
+    for ev in reader:
+        if isinstance(ev, TruthPose) and ev.t >= last:
+            t.append(ev.t)
+            poses.append((ev.x, ev.y, ev.theta))
+            last = ev.t
+    if len(t) < 2:
+        raise UserError(f"{path}: the log has no truth or reference poses")
+    kind = getattr(reader, "reference_kind", None) or "ground truth"
+    return np.array(t), np.array(poses), reader.meta.get("true_map") or {}, kind
+
+
+def evaluate_command(args: argparse.Namespace) -> dict[str, Any]:
+    traj = Path(args.trajectory)
+    map_path = Path(args.map) if args.map else None
+    if traj.is_dir():
+        if map_path is None and (traj / "map.json").exists():
+            map_path = traj / "map.json"
+        traj = traj / "trajectory.tum"
+    t_est, est = _read_tum(traj)
+    t_ref, ref, true_map, kind = load_reference(args.reference)
+    covs = None
+    if args.covariances:
+        try:
+            t_c, covs = evaluation.read_covariances(args.covariances)
+        except (ValueError, OSError) as exc:
+            raise UserError(f"{args.covariances}: {exc}") from None
+        if len(t_c) != len(t_est) or not np.allclose(t_c, t_est, atol=1e-6):
+            raise UserError(f"{args.covariances}: times differ from the trajectory's")
+    if args.rpe_delta <= 0:
+        raise UserError(f"--rpe-delta must be positive, got {args.rpe_delta}")
+    try:
+        rep = evaluation.evaluate_trajectory(
+            t_est, est, t_ref, ref, args.rpe_delta, covs, args.max_gap
+        )
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    rep = {"trajectory": str(traj), "reference": str(args.reference), "reference_kind": kind, **rep}
+    if map_path is not None and true_map:
+        try:
+            landmarks = json.loads(map_path.read_text())["landmarks"]
+        except (OSError, ValueError, KeyError) as exc:
+            raise UserError(f"{map_path}: not a map.json ({exc})") from None
+        rep["map_error"] = evaluation.map_error(landmarks, true_map)
+    a, r = rep["ate"], rep["rpe"]
+    lines = [
+        f"{rep['poses_compared']} poses against the {kind} "
+        f"({rep['poses_outside_reference']} outside its time span)",
+        f"ATE (SE(2)-aligned): RMSE {a['rmse']:.3f} m, mean {a['mean']:.3f} m, "
+        f"max {a['max']:.3f} m, heading RMSE {a['heading_rmse_deg']:.2f} deg",
+        f"RPE over {r['delta_m']:g} m ({r['pairs']} pairs): translation RMSE "
+        f"{r['trans_rmse']:.3f} m (max {r['trans_max']:.3f}), rotation RMSE "
+        f"{r['rot_rmse_deg']:.2f} deg (max {r['rot_max_deg']:.2f})",
+    ]
+    if "nees" in rep:
+        lines.append(
+            f"NEES: mean {rep['nees']['mean']:.2f} (3 dof), "
+            f"{100 * rep['nees']['within_95']:.0f} % within the 95 % interval"
+        )
+    for k, v in rep.get("map_error", {}).items():
+        lines.append(f"map error {k}: median {v['median']:.3f}, mean {v['mean']:.3f} (n={v['n']})")
+    rep["_text"] = "\n".join(lines)
+    return rep
