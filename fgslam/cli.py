@@ -279,6 +279,61 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_emulate(args: argparse.Namespace) -> int:
+    from fgslam.config import load_config
+    from fgslam.online import StopSignal, emulate_main, emulation_faults
+
+    cfg = load_config(args.config)
+    faults = emulation_faults(
+        cfg,
+        noise=args.noise,
+        drop=args.drop,
+        flip=args.flip,
+        disconnects=args.disconnect or [],
+        seed=args.seed,
+    )
+    with StopSignal() as sig:
+        return emulate_main(
+            cfg,
+            args.world,
+            seed=args.seed,
+            speed=args.speed,
+            duration=args.duration,
+            link_dir=args.link_dir,
+            faults=faults,
+            stop=sig.event,
+        )
+
+
+def _cmd_online(args: argparse.Namespace) -> int:
+    from fgslam.config import load_config
+    from fgslam.online import StopSignal, device_summary, online_main
+
+    cfg = load_config(args.config)
+    with StopSignal("stopping: processing what has arrived, writing outputs") as sig:
+        run, rep = online_main(
+            cfg,
+            laser=args.laser,
+            sonar=args.sonar or [],
+            odometry=args.odom,
+            out=args.out,
+            record=args.record,
+            backend=args.backend,
+            sensors=args.sensors,
+            speed=args.speed,
+            idle_timeout=args.idle_timeout,
+            connect_timeout=args.connect_timeout,
+            stop=sig.event,
+            meta={"command": " ".join(sys.argv)},
+        )
+    print(f"stopped ({run.reason}); events: {dict(sorted(run.events.items()))}")
+    print("devices: " + " | ".join(device_summary(n, s) for n, s in run.status.items()))
+    if args.record:
+        print(f"recorded every byte received into {args.record} (fgslam replay to decode)")
+    _print_summary(rep, args.out)
+    return 0
+
+
 def _add_reader_arguments(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("foreign logs (docs/readers.md)")
     g.add_argument(
@@ -531,6 +586,127 @@ def build_parser() -> argparse.ArgumentParser:
         "--config", metavar="ROBOT.toml", help="robot configuration (default: the recorded one)"
     )
     p.set_defaults(func=_cmd_replay)
+
+    speed_help = (
+        "log time runs K times faster than wall time (default 1). It must be the same for "
+        "`fgslam emulate` and `fgslam online`: the host stamps every frame with its own "
+        "clock scaled by K, so with another K the odometry, sonar and laser times would not "
+        "match the emulated run (wrong speeds, sonar windows and device-clock mapping)"
+    )
+    p = sub.add_parser(
+        "emulate",
+        help="emulate the robot's devices on pseudo-terminals, fed by a simulated run",
+        description=(
+            "Start emulators of the SICK PLS, the two advanced sonar arrays and the odometry "
+            "board on pseudo-terminals, byte for byte in their protocols (docs/devices.md), "
+            "print their ports and the `fgslam online` command to use, and play a simulated "
+            "run of the world into them once a host streams from every port. Stops at the "
+            "end of the run or on Ctrl-C. Faults (noise, dropped bytes, bit flips, cable "
+            "pulls) can be injected."
+        ),
+    )
+    p.add_argument("--world", default="corridor", help="built-in world name or world JSON file")
+    p.add_argument("--seed", type=int, default=0, help="random seed of the run (default 0)")
+    p.add_argument("--speed", type=float, default=1.0, metavar="K", help=speed_help)
+    p.add_argument(
+        "--duration", type=float, metavar="S", help="stop after S s of the run (default: all)"
+    )
+    p.add_argument(
+        "--link-dir",
+        metavar="DIR",
+        help="put the port links (laser, sonar0, sonar1, odometry) here (default: a temp dir)",
+    )
+    p.add_argument(
+        "--config", metavar="ROBOT.toml", help="robot configuration overriding the default"
+    )
+    p.add_argument(
+        "--noise",
+        type=float,
+        default=0.0,
+        metavar="P",
+        help="fault: probability of random bytes before a frame",
+    )
+    p.add_argument(
+        "--drop",
+        type=float,
+        default=0.0,
+        metavar="P",
+        help="fault: probability of losing bytes of a frame",
+    )
+    p.add_argument(
+        "--flip",
+        type=float,
+        default=0.0,
+        metavar="P",
+        help="fault: probability of a flipped bit in a frame",
+    )
+    p.add_argument(
+        "--disconnect",
+        action="append",
+        metavar="DEVICE:AT:DOWN",
+        help="fault: pull DEVICE's cable (laser, sonar0, sonar1, odometry) at AT s of the run "
+        "for DOWN s; repeatable",
+    )
+    p.set_defaults(func=_cmd_emulate)
+
+    p = sub.add_parser(
+        "online",
+        help="run SLAM online on the robot's devices (or emulators) over serial ports",
+        description=(
+            "Open the SICK PLS, the sonar arrays and the odometry board on their serial "
+            "ports, run the front end and iSAM2 (or the EKF) incrementally as data arrives, "
+            "with a live status line on stderr (pose, landmarks, keyframe latency, per-device "
+            "disconnects, CRC errors, dropped frames). A device that disconnects is reopened "
+            "while the others go on. On Ctrl-C, or when no data came for --idle-timeout s, "
+            "write the outputs of `fgslam run` into --out. With --record every byte received "
+            "is also recorded (`fgslam replay` decodes it into a log)."
+        ),
+        epilog=(
+            "With emulated devices: run `fgslam emulate --speed 4` in one terminal and the "
+            "command it prints in another."
+        ),
+    )
+    p.add_argument("--laser", metavar="PORT", help="SICK PLS serial port")
+    p.add_argument(
+        "--sonar",
+        action="append",
+        metavar="PORT",
+        help="sonar array port, once per array in the configuration's order",
+    )
+    p.add_argument("--odom", metavar="PORT", help="odometry board serial port")
+    p.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    p.add_argument("--record", metavar="RAW_DIR", help="record every byte received here")
+    p.add_argument(
+        "--backend",
+        choices=["isam2", "ekf"],
+        default="isam2",
+        help="incremental smoothing or the paper's EKF (default isam2)",
+    )
+    p.add_argument(
+        "--sensors",
+        choices=["fused", "laser", "sonar"],
+        default="fused",
+        help="laser and sonar fused, laser only, or sonar only (default fused)",
+    )
+    p.add_argument(
+        "--config", metavar="ROBOT.toml", help="robot configuration overriding the default"
+    )
+    p.add_argument("--speed", type=float, default=1.0, metavar="K", help=speed_help)
+    p.add_argument(
+        "--idle-timeout",
+        type=float,
+        default=5.0,
+        metavar="S",
+        help="end of data: stop after S wall s without any data, once data flowed (default 5)",
+    )
+    p.add_argument(
+        "--connect-timeout",
+        type=float,
+        default=30.0,
+        metavar="S",
+        help="give up if a device has not answered after S s (default 30)",
+    )
+    p.set_defaults(func=_cmd_online)
     return parser
 
 

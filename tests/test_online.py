@@ -1,0 +1,369 @@
+"""Online SLAM (issue 6): the incremental pipeline, and emulators -> pty drivers ->
+:func:`fgslam.online.run_online` compared with ``fgslam run`` on the log of the same run;
+Ctrl-C, a device disconnect, the ``fgslam emulate`` / ``fgslam online`` commands.
+
+Emulated runs are short (25-40 s of the corridor run) at 6x real time; every wait is
+generous and the assertions are on content, not on timing."""
+
+from __future__ import annotations
+
+import io
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections import Counter
+
+import numpy as np
+import pytest
+from devices_helpers import wait_until
+from slam_scenes import room_events
+
+from devices.emulators import Faults
+from fgslam.cli import main
+from fgslam.config import load_config
+from fgslam.events import LaserScan, OdometryEvent, TruthPose
+from fgslam.logfile import LogReader
+from fgslam.online import online_main, run_online, source
+from fgslam.ports import DevicePorts, replay, replay_to_log, start_emulators
+from fgslam.sim import simulate_to_log
+from fgslam.sim.world import load_world
+from fgslam.slam.runner import ReorderBuffer, SlamPipeline, run_backends, run_slam
+
+CFG = load_config()
+SPEED = 6.0
+SEED, DURATION = 1, 40.0
+FGSLAM = [sys.executable, "-m", "fgslam.cli"]
+
+
+# ------------------------------------------------------------------ the incremental pipeline
+
+
+def _same_results(a, b) -> None:
+    assert a.backend == b.backend
+    np.testing.assert_array_equal(a.times, b.times)
+    np.testing.assert_array_equal(a.poses, b.poses)
+    np.testing.assert_array_equal(a.filtered, b.filtered)
+    assert a.means.keys() == b.means.keys()
+    for k in a.means:
+        np.testing.assert_array_equal(a.means[k], b.means[k])
+    assert {k: v.kind for k, v in a.landmarks.items()} == {
+        k: v.kind for k, v in b.landmarks.items()
+    }
+
+
+def test_pipeline_event_by_event_equals_run_backends():
+    evs, cfg, _ = room_events(0, 20.0)
+    ref = run_backends(list(evs), cfg, ["ekf", "isam2"], "fused")
+    pipe = SlamPipeline(cfg, ["ekf", "isam2"], "fused")
+    assert pipe.pose() is None and pipe.last_latency() is None and pipe.keyframes == 0
+    n = 0
+    for ev in evs:
+        k = pipe.add(ev)
+        n += k
+        if k:
+            assert pipe.keyframes == n and pipe.pose().shape == (3,)
+            assert pipe.last_latency("ekf") > 0 and pipe.last_latency("isam2") > 0
+    res = pipe.finish()
+    assert pipe.finish() is res  # idempotent
+    counts = pipe.landmark_counts("isam2")
+    for a, b in zip(ref, res, strict=True):
+        _same_results(a, b)
+    isam = res[1]
+    assert counts == dict(Counter(lm.kind for lm in isam.landmarks.values()))
+    assert len(isam.times) == pipe.keyframes > n - 5  # the last scans come out at finish
+    with pytest.raises(RuntimeError):
+        pipe.add(evs[-1])
+
+
+def test_reorder_buffer_puts_late_events_back_within_its_window():
+    evs, cfg, _ = room_events(0, 20.0)
+    evs = list(evs)
+    # every laser scan arrives 0.5 s late (as a scan stamped at its first byte does)
+    late = sorted(
+        evs, key=lambda e: e.t + (0.5 if isinstance(e, LaserScan) else 0.0), reverse=False
+    )
+    assert late != evs
+    a = run_backends(evs, cfg, ["isam2"])[0]
+    b = run_backends(late, cfg, ["isam2"])[0]
+    _same_results(a, b)
+    assert b.stats["events_reordered"] > 0 and "events_out_of_order" not in b.stats
+    # with no window, every late scan is dropped
+    pipe = SlamPipeline(cfg, ["isam2"], reorder_window=0.0)
+    for ev in late:
+        pipe.add(ev)
+    dropped = pipe.finish()[0].stats["events_out_of_order"]
+    assert dropped >= 0.9 * sum(isinstance(e, LaserScan) for e in evs)
+
+    buf = ReorderBuffer(1.0)
+    out = []
+    for t in (0.0, 0.5, 0.2, 1.3, 0.4, 3.0, 0.3):
+        out += buf.push(OdometryEvent(t, 0, 0))
+    out += buf.flush()
+    assert [e.t for e in out] == [0.0, 0.2, 0.4, 0.5, 1.3, 3.0]  # 0.3 came after 1.3 left
+    assert buf.dropped == 1 and buf.reordered == 2
+
+
+# ------------------------------------------------------------------ end to end
+
+
+def start(faults=None, duration=DURATION, seed=SEED):
+    return start_emulators(
+        CFG,
+        load_world("corridor"),
+        seed=seed,
+        speed=SPEED,
+        duration=duration,
+        faults=faults,
+    )
+
+
+def ports_for(emu, raw_dir, **kw) -> DevicePorts:
+    return DevicePorts(
+        CFG,
+        laser=emu.ports["laser"],
+        sonar=emu.ports["sonar"],
+        odometry=emu.ports["odometry"],
+        clock=emu.clock,
+        record_dir=raw_dir,
+        world="corridor",
+        **kw,
+    )
+
+
+@pytest.fixture(scope="module")
+def online_run(tmp_path_factory):
+    """40 s of the corridor run (seed 1) emulated at 6x, SLAM online with iSAM2; ends at
+    the end of the data (the emulators stay up, silent)."""
+    raw = tmp_path_factory.mktemp("online") / "raw"
+    lines: list[str] = []
+    emu = start()
+    try:
+        with ports_for(emu, raw) as ports:
+            run = run_online(ports, CFG, idle_timeout=1.5, on_status=lines.append)
+        assert emu.done and emu.playback.error is None
+        return run, emu.stats(), raw, lines
+    finally:
+        emu.stop()
+
+
+def landmark_points(res) -> dict[str, np.ndarray]:
+    """A position per landmark, by kind: corner vertices, points, and line segment
+    midpoints (the normal point moved along the line to the middle of its extent)."""
+    out: dict[str, list] = {"line": [], "corner": [], "point": []}
+    for lid, lm in res.landmarks.items():
+        m = res.means[lid]
+        if lm.kind == "line":
+            a, d = m[0], m[1]
+            s = 0.0 if lm.extent is None else float(np.mean(lm.extent))
+            out["line"].append((d * np.cos(a) - s * np.sin(a), d * np.sin(a) + s * np.cos(a)))
+        else:
+            out[lm.kind].append((m[0], m[1]))
+    return {k: np.array(v).reshape(-1, 2) for k, v in out.items()}
+
+
+def test_online_run_keeps_up_and_reports_status(online_run):
+    run, emu_stats, _, lines = online_run
+    assert run.reason == "end of data"
+    for name, s in run.status.items():  # every frame sent arrived, intact
+        assert s["connected"] and s["opens"] == 1 and s["disconnects"] == 0, name
+        assert s["crc_errors"] == s.get("dropped_frames", 0) == s["discarded"] == 0, name
+        assert run.events[name] == emu_stats[name]["frames_sent"] > 0, name
+    assert run.result.stats["events_laser"] == run.events["laser"]
+    assert len(run.result.times) == run.events["laser"]  # one keyframe per scan
+    assert any("lines" in ln and "laser ok" in ln and "kf " in ln for ln in lines)
+    assert run.busy_seconds < run.wall_seconds
+
+
+def test_online_equals_fgslam_run_on_the_replayed_recording(online_run, tmp_path):
+    """The recording replays into exactly the events the online run took (the same
+    decoders, the same stamps), and both put them in time order through the same reorder
+    buffer: ``fgslam run`` on the replayed log gives the same map and trajectory, to the
+    last bit."""
+    run, _, raw, _ = online_run
+    log = tmp_path / "replayed.log.gz"
+    rep = replay_to_log(raw, log)
+    assert rep.events == sum(run.events.values())
+    with LogReader(log) as reader:
+        ref = run_slam(reader, CFG, "isam2", "fused")
+    assert ref.stats["events_reordered"] > 0  # laser scans come after their first byte's time
+    assert "events_out_of_order" not in ref.stats
+    _same_results(ref, run.result)
+
+
+def test_online_matches_fgslam_run_on_the_simulated_log(online_run, tmp_path):
+    """``fgslam run`` on the simulator's log of the same seed and duration. Not equal: on
+    the host every laser stamp carries the read latency of the pty and the driver thread
+    (a few ms wall, x6 in log time), sonar and odometry times come from the device-clock
+    filter, sonar readings are quantised to 1 mm / 1e-4 rad, and log time starts elsewhere.
+    Both runs start at the origin (the truth is left out of the log). Observed over 40 s
+    (seeds 1 and 5): final pose 1-6 mm and 0.03 deg apart; the same line and point counts,
+    corners 6 vs 6-8 (a corner near the gate is sometimes ambiguous, sometimes new);
+    nearest-neighbour landmark distances median 2-5 mm, max 2.3 cm. Tolerances, several
+    times that: final pose within 5 cm and 0.5 deg; landmark counts by kind within 3;
+    median nearest-neighbour distance below 2 cm and 80 % of the landmarks within 10 cm
+    (an association decided differently moves a segment's extent)."""
+    run, _, _, _ = online_run
+    log = tmp_path / "sim.log"
+    simulate_to_log(load_world("corridor"), CFG, log, SEED, DURATION)
+    with LogReader(log) as reader:
+        ref = run_slam((e for e in reader if not isinstance(e, TruthPose)), CFG)
+    res = run.result
+    assert abs(len(ref.times) - len(res.times)) <= 1
+    d = ref.poses[-1] - res.poses[-1]
+    assert np.hypot(d[0], d[1]) < 0.05 and abs(np.degrees(d[2])) < 0.5, d
+    a, b = landmark_points(ref), landmark_points(res)
+    dists = []
+    for kind in a:
+        assert abs(len(a[kind]) - len(b[kind])) <= 3, (kind, len(a[kind]), len(b[kind]))
+        for p in b[kind]:
+            if len(a[kind]):
+                dists.append(np.min(np.hypot(*(a[kind] - p).T)))
+    assert len(dists) >= 10
+    assert np.median(dists) < 0.02 and np.mean(np.array(dists) < 0.10) >= 0.8, dists
+
+
+def test_disconnect_mid_run_reconnects_and_records_everything(tmp_path):
+    """The odometry cable is pulled at 8 s for 1 s and the sonar 0 line is noisy: the run
+    completes, the status shows the reconnect, and the recording holds every frame the
+    drivers received (replayed events = events the online run took, per device)."""
+    faults = {
+        "odometry": Faults(seed=3, disconnects=((8.0, 1.0),)),
+        "sonar0": Faults(seed=4, noise=0.2),
+    }
+    raw = tmp_path / "raw"
+    emu = start(faults, duration=25.0, seed=2)
+    try:
+        with ports_for(emu, raw, reopen_interval=0.1) as ports:
+            run = run_online(ports, CFG, idle_timeout=1.5)
+        sent = emu.stats()
+    finally:
+        emu.stop()
+    st = run.status
+    assert run.reason == "end of data" and len(run.result.times) > 50
+    assert st["odometry"]["disconnects"] >= 1 and st["odometry"]["opens"] >= 2
+    assert st["odometry"]["connected"]
+    assert st["sonar0"]["discarded"] > 0 and st["laser"]["disconnects"] == 0
+    replayed = Counter(source(e) for e in replay(raw))
+    assert replayed == run.events
+    for name in ("laser", "sonar0", "sonar1"):
+        assert run.events[name] == sent[name]["frames_sent"], name
+    # lost on the line, not on the host: frames in the pty when the cable was pulled, and
+    # those the emulator wrote into the new pty before the driver reopened it (0.1 s wall
+    # = 0.6 s of the run) and flushed its input
+    assert 0 <= sent["odometry"]["frames_sent"] - run.events["odometry"] <= 100
+    assert sent["odometry"]["frames_lost"] > 50  # ~1 s at 100 Hz not sent while unplugged
+
+
+def test_stop_writes_the_outputs(tmp_path):
+    """What Ctrl-C does in ``fgslam online`` (the stop event), on its own clock as in a
+    separate process: the run stops mid-way and the outputs of ``fgslam run`` are written."""
+    emu = start(duration=60.0, seed=3)
+    stop = threading.Event()
+
+    def stopper() -> None:
+        emu.started.wait(60)
+        while emu.clock.now() - emu.start_time < 12.0 and not emu.done:
+            time.sleep(0.05)
+        stop.set()
+
+    th = threading.Thread(target=stopper, daemon=True)
+    th.start()
+    try:
+        run, rep = online_main(
+            CFG,
+            laser=emu.ports["laser"],
+            sonar=emu.ports["sonar"],
+            odometry=emu.ports["odometry"],
+            out=str(tmp_path / "out"),
+            speed=SPEED,
+            stop=stop,
+            status_stream=io.StringIO(),
+        )
+        finished = emu.done
+    finally:
+        emu.stop()
+        th.join(5)
+    assert run.reason == "interrupted" and not finished
+    assert 20 < rep["poses"] == len(run.result.times)
+    assert 5.0 < rep["log_duration_s"] < 30.0
+    for name in ("trajectory.tum", "map.json", "report.json", "map.png"):
+        assert (tmp_path / "out" / name).stat().st_size > 0
+
+
+# ------------------------------------------------------------------ the commands
+
+
+def test_emulate_and_online_commands_with_ctrl_c(tmp_path):
+    """``fgslam emulate`` in one process, ``fgslam online`` in another (as in two
+    terminals); Ctrl-C (SIGINT) stops the online run, which writes its outputs, then the
+    emulator."""
+    links, out, raw = tmp_path / "links", tmp_path / "out", tmp_path / "raw"
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    emulate = ["emulate", "--duration", "120", "--seed", "4", "--speed", f"{SPEED:g}"]
+    emu = subprocess.Popen(
+        [*FGSLAM, *emulate, "--link-dir", str(links)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
+    online = None
+    try:
+        assert wait_until(lambda: (links / "odometry").exists(), timeout=60)
+        printed = emu.stdout.readline() + "".join(emu.stdout.readline() for _ in range(6))
+        cmd = next(ln.split() for ln in printed.splitlines() if "fgslam online" in ln)
+        assert cmd[cmd.index("--speed") + 1] == f"{SPEED:g}"
+        assert cmd[cmd.index("--laser") + 1] == str(links / "laser")
+        online = subprocess.Popen(
+            [*FGSLAM, *cmd[1 : cmd.index("--out")], "--out", str(out), "--record", str(raw)],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=env,
+        )
+
+        def flowing() -> bool:  # ~10 s of the run recorded
+            p = raw / "odometry.raw"
+            return p.exists() and p.stat().st_size > 17 * 100 * 10
+
+        assert wait_until(flowing, timeout=90), online.poll()
+        online.send_signal(signal.SIGINT)
+        o_out, o_err = online.communicate(timeout=90)
+        assert online.returncode == 0, o_err
+        assert "stopped (interrupted)" in o_out and "isam2/fused" in o_out
+        assert "laser ok" in o_err and "Traceback" not in o_err
+        for name in ("trajectory.tum", "map.json", "report.json", "map.png"):
+            assert (out / name).stat().st_size > 0
+        emu.send_signal(signal.SIGINT)
+        e_out, e_err = emu.communicate(timeout=30)
+        assert emu.returncode == 0, e_err
+        assert "run started" in e_out and "stopped:" in e_out
+        assert not (links / "laser").exists()
+    finally:
+        for p in (online, emu):
+            if p is not None and p.poll() is None:
+                p.kill()
+                p.communicate()
+
+
+@pytest.mark.parametrize(
+    "argv, msg",
+    [
+        (["online", "--laser", "/dev/no-such-port", "--out", "o"], "no such port"),
+        (["online", "--out", "o"], "no device port given"),
+        (["online", "--odom", os.devnull, "--out", "o", "--connect-timeout", "0.5"], "odometry"),
+        (["online", "--odom", os.devnull, "--out", "o", "--speed", "0"], "--speed"),
+        (["emulate", "--disconnect", "odometry:5"], "DEVICE:AT:DOWN"),
+        (["emulate", "--disconnect", "wheel:5:1"], "unknown device"),
+        (["emulate", "--speed", "-2"], "--speed"),
+        (["emulate", "--noise", "2"], "--noise"),
+    ],
+)
+def test_command_errors_are_one_line(tmp_path, monkeypatch, capsys, argv, msg):
+    monkeypatch.chdir(tmp_path)
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert msg in err and "\n" not in err and "Traceback" not in err
