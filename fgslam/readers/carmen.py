@@ -276,7 +276,7 @@ class CarmenLog(Source):
                     pr.backwards["ODOM"] += 1
                     continue
                 last_odo_t = t
-                yield drive.ticks(t, carried)
+                yield from drive.ticks(t, carried)
                 carried = np.zeros(3)
                 continue
             if tag == "TRUEPOS":
@@ -305,7 +305,7 @@ class CarmenLog(Source):
                 pr.backwards[tag] += 1
                 continue  # the scan is dropped; its motion stays in `carried`
             if self.mode == "corrected" or not have_odom:
-                yield drive.ticks(t, carried)
+                yield from drive.ticks(t, carried)
                 carried = np.zeros(3)
                 last_odo_t = t
             if self.mode == "corrected" and self.reference:

@@ -28,12 +28,19 @@ StrPath = str | PathLike[str]
 MAX_PROBLEMS = 20
 
 # The virtual differential drive of logs that give odometry as poses (CARMEN, ROS):
-# 0.1 mm per tick on a 0.5 m wheelbase, odometry noise per sample as in paper eq 5.
+# 0.1 mm per tick on a 2 m wheelbase; every increment is cut into samples of at most 5 cm of
+# travel and 2 deg of turn, so that the eq 5 noise (per sample) depends on the path, not on
+# the log's odometry rate. k = 0.5 per sample gives sigma 11 cm per wheel, 8 cm along track
+# and 4.5 deg of heading per metre driven straight, and about 5 cm of travel for a 30 deg turn
+# on the spot (the wide virtual wheelbase makes turns on the spot uncertain in position too,
+# as real ones are; with 0.5 m, iSAM2 met near-singular between factors on the Intel log).
 VIRTUAL_METRES_PER_TICK = 1e-4
-VIRTUAL_WHEELBASE = 0.5
+VIRTUAL_WHEELBASE = 2.0
 VIRTUAL_ENCODER_STEPS = 10000
-VIRTUAL_K = 0.05  # sigma(L) = 0.05 L per sample, each wheel (k_r, k_l)
-VIRTUAL_K_D = 0.05  # sigma(D) = 0.05 D per sample (scales with the turn of the sample)
+VIRTUAL_K = 0.5  # sigma(L) = k L per sample, each wheel (k_r, k_l)
+VIRTUAL_K_D = 0.1  # sigma(D) = k_d D per sample (acts on the turn of the sample)
+VIRTUAL_STEP = 0.05  # m of travel per sample at most
+VIRTUAL_TURN = math.radians(2.0)  # rad of turn per sample at most
 
 
 class ReaderError(UserError, ValueError):
@@ -149,8 +156,8 @@ def derived_config(
     """The default configuration with the laser of the log (``n_beams`` over ``fov_deg``,
     first beam at -fov/2, mounted at ``mount`` (x, y, yaw rad), stamps without a known
     transmission delay) and the virtual differential drive of the reader's odometry (0.1 mm
-    per tick, wheelbase 0.5 m, k_r = k_l = k_d = 0.05 per sample). The sonar section stays the
-    default; these logs have no advanced sonar."""
+    per tick, wheelbase 2 m, k_r = k_l = 0.5 and k_d = 0.1 per sample of at most 5 cm / 2
+    deg). The sonar section stays the default; these logs have no advanced sonar."""
     cfg = load_config()
     laser = dataclasses.replace(
         cfg.laser,
@@ -206,12 +213,15 @@ def compose(a: tuple[float, float, float], d: tuple[float, float, float]) -> np.
 class VirtualDrive:
     """Pose increments -> encoder ticks of a virtual differential drive.
 
-    An increment (dx, dy, dtheta) in the frame of the previous pose becomes one odometry
-    sample with arc length ``ds = sign(dx) hypot(dx, dy)`` and heading change ``dtheta``, i.e.
-    wheel distances ``L_r = ds + dtheta D/2``, ``L_l = ds - dtheta D/2``. The heading change
+    An increment (dx, dy, dtheta) in the frame of the previous pose is driven as ``n`` equal
+    samples (``n`` the least with at most ``VIRTUAL_STEP`` of travel and ``VIRTUAL_TURN`` of
+    turn each), each of heading change ``dtheta / n`` and a chord length chosen so that the
+    ``n`` samples (eqs 1-3) end at distance ``hypot(dx, dy)`` (backwards when ``dx < 0``),
+    wheel distances ``L_r = c + dtheta D / 2n``, ``L_l = c - dtheta D / 2n``. The heading change
     is exact; the position is exact when the robot moved along the chord of its turn (no
-    sideways slip), otherwise off by ``|ds| |atan2(dy, dx) - dtheta/2|``. Ticks are rounded
-    with the remainder carried to the next sample, so quantisation (0.1 mm) never accumulates.
+    sideways slip), otherwise off by ``hypot(dx, dy) |atan2(dy, dx) - dtheta/2|``. Ticks are
+    rounded with the remainder carried to the next sample, so the quantisation (0.1 mm per
+    tick) never accumulates. The samples are stamped evenly over (previous stamp, t].
     """
 
     def __init__(self, cfg: RobotConfig) -> None:
@@ -220,16 +230,35 @@ class VirtualDrive:
         self.mr, self.ml = o.metres_per_tick_right, o.metres_per_tick_left
         self.cum_r = self.cum_l = 0.0
         self.tick_r = self.tick_l = 0
+        self.t: float | None = None
 
-    def ticks(self, t: float, inc: tuple[float, float, float]) -> OdometryEvent:
-        dx, dy, dth = (float(v) for v in inc)
-        ds = math.copysign(math.hypot(dx, dy), dx) if dx != 0 else math.hypot(dx, dy)
-        self.cum_r += ds + 0.5 * dth * self.D
-        self.cum_l += ds - 0.5 * dth * self.D
+    def _tick(self, t: float, lr: float, ll: float) -> OdometryEvent:
+        self.cum_r += lr
+        self.cum_l += ll
         tr, tl = round(self.cum_r / self.mr), round(self.cum_l / self.ml)
         ev = OdometryEvent(t, tr - self.tick_r, tl - self.tick_l)
         self.tick_r, self.tick_l = tr, tl
         return ev
+
+    def ticks(self, t: float, inc: tuple[float, float, float]) -> list[OdometryEvent]:
+        """The odometry samples of one increment ending at time ``t``."""
+        dx, dy, dth = (float(v) for v in inc)
+        dist = math.hypot(dx, dy)
+        n = max(1, math.ceil(dist / VIRTUAL_STEP - 1e-9), math.ceil(abs(dth) / VIRTUAL_TURN - 1e-9))
+        h = dth / n
+        # n chords of length c turning by h each span 2 c sin(n h/2) / (2 sin(h/2))
+        ratio = math.sin(h / 2) / math.sin(dth / 2) if abs(dth) > 1e-12 else 1.0 / n
+        c = math.copysign(dist * ratio, dx) if dx < 0 else dist * ratio
+        t0 = self.t if self.t is not None and self.t < t else t
+        self.t = t
+        return [
+            self._tick(
+                t0 + (t - t0) * (i + 1) / n if i < n - 1 else t,
+                c + 0.5 * h * self.D,
+                c - 0.5 * h * self.D,
+            )
+            for i in range(n)
+        ]
 
 
 class Source:

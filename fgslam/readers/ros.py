@@ -212,7 +212,7 @@ class RosBag(Source):
                         pr.backwards[conn.topic] += 1
                         continue
                     last = t
-                    yield drive.ticks(t, carried)
+                    yield from drive.ticks(t, carried)
                     carried = np.zeros(3)
                     continue
                 if t < last:

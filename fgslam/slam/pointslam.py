@@ -70,8 +70,10 @@ def run_points(
     association: str = "given",
     map_params: MapParams | None = None,
     limit: int | None = None,
+    odometry_scale: float = 1.0,
 ) -> PointSlamResult:
-    """Run one backend over the steps (the first ``limit`` of them, if given)."""
+    """Run one backend over the steps (the first ``limit`` of them, if given), the odometry
+    covariances multiplied by ``odometry_scale``."""
     if backend not in BACKENDS:
         raise ValueError(f"unknown backend {backend!r}; expected one of {BACKENDS}")
     if association not in ASSOCIATIONS:
@@ -126,7 +128,7 @@ def run_points(
     latencies.append(time.perf_counter() - t0)
     for k, st in enumerate(steps, 1):
         t0 = time.perf_counter()
-        be.predict(float(k), _pre(st.delta, st.cov))
+        be.predict(float(k), _pre(st.delta, st.cov * odometry_scale))
         keyframe(k, st.j)
         latencies.append(time.perf_counter() - t0)
         index.append(st.j)
