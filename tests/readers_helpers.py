@@ -1,0 +1,173 @@
+"""Small synthetic logs for the reader tests: a robot in a rectangular room, written as a
+corrected or raw CARMEN log, and ROS 1 / ROS 2 bags written with rosbags."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+ROOM = (-3.0, -2.0, 5.0, 3.0)  # x0, y0, x1, y1 (m)
+DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+
+
+def ray_rect(pose, bearings, room=ROOM) -> np.ndarray:
+    """Ranges from pose (x, y, th) along bearings (robot frame) to the walls of the room."""
+    x, y, th = pose
+    x0, y0, x1, y1 = room
+    a = th + np.asarray(bearings)
+    c, s = np.cos(a), np.sin(a)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tx = np.where(c > 0, (x1 - x) / c, np.where(c < 0, (x0 - x) / c, np.inf))
+        ty = np.where(s > 0, (y1 - y) / s, np.where(s < 0, (y0 - y) / s, np.inf))
+    return np.minimum(tx, ty)
+
+
+def path(n: int = 30) -> list[tuple[float, float, float]]:
+    """A smooth drive through the room: forward, a turn, forward."""
+    out = []
+    for k in range(n):
+        u = k / (n - 1)
+        th = 1.2 * u
+        out.append((-1.5 + 3.0 * u, -0.5 + 1.5 * u * u, th))
+    return out
+
+
+def compose(a, d):
+    c, s = math.cos(a[2]), math.sin(a[2])
+    return (a[0] + c * d[0] - s * d[1], a[1] + s * d[0] + c * d[1], a[2] + d[2])
+
+
+def rel(a, b):
+    c, s = math.cos(a[2]), math.sin(a[2])
+    dx, dy = b[0] - a[0], b[1] - a[1]
+    return (c * dx + s * dy, -s * dx + c * dy, b[2] - a[2])
+
+
+def fmt(v) -> str:
+    return " ".join(repr(float(x)) for x in v)
+
+
+def carmen_text(
+    corrected: bool = True,
+    n: int = 30,
+    beams: int = 180,
+    odo_error=(0.02, 0.0, 0.01),
+    extra: dict[int, str] | None = None,
+    stamp=None,
+) -> str:
+    """A CARMEN log of the room run. ``corrected``: as a GMapping corrected log (ODOM lines
+    restart from the corrected pose, the true pose here), with raw odometry = truth
+    increments composed with ``odo_error`` per step; raw: cumulative odometry in ODOM lines.
+    ``extra`` puts a line before scan k; ``stamp(k)`` overrides scan k's time."""
+    truth = path(n)
+    phi = -math.pi / 2 + np.arange(beams) * math.pi / (beams - 1)
+    lines = [
+        "# message formats defined: PARAM ODOM FLASER",
+        "PARAM robot_frontlaser_offset 0.0 h 0",
+    ]
+    odo = (0.0, 0.0, 0.0)
+    for k, p in enumerate(truth):
+        t = 1.0 + k if stamp is None else stamp(k)
+        inc = compose(rel(truth[k - 1], p), odo_error) if k else (0.0, 0.0, 0.0)
+        odo = compose(odo, inc)
+        if extra and k in extra:
+            lines.append(extra[k])
+        if corrected:
+            before = compose(truth[k - 1], inc) if k else (0.0, 0.0, 0.0)
+            lines.append(f"ODOM {fmt(before)} 0 0 0 {t!r} h {t!r}")
+        else:
+            lines.append(f"ODOM {fmt(odo)} 0 0 0 {t!r} h {t!r}")
+        r = ray_rect(p, phi)
+        r[5] = 81.91  # no return
+        pose = p if corrected else odo
+        lines.append(f"FLASER {beams} {fmt(r)} {fmt(pose)} {fmt(pose)} {t!r} h {t!r}")
+        if corrected:
+            lines.append(f"ODOM {fmt(p)} 0 0 0 0 h 0")
+            lines.append("NEFF 12.5")
+    return "\n".join(lines) + "\n"
+
+
+def write_bag(
+    path, ros1: bool, n: int = 10, backwards_scan: int | None = None, with_range: bool = True
+) -> None:
+    """A bag with /scan (181 beams over 180 deg), /odom (two messages per scan, the robot
+    advancing 5 cm and turning 0.02 rad per message) and /sonar (sensor_msgs/Range, one
+    out-of-range reading)."""
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
+    T = ts.types
+    Header, Time = T["std_msgs/msg/Header"], T["builtin_interfaces/msg/Time"]
+
+    def hdr(t, frame):
+        sec = math.floor(t)
+        kw = {"stamp": Time(sec=sec, nanosec=round((t - sec) * 1e9)), "frame_id": frame}
+        if ros1:
+            kw["seq"] = 0
+        return Header(**kw)
+
+    if ros1:
+        from rosbags.rosbag1 import Writer
+
+        writer = Writer(path)
+    else:
+        from rosbags.rosbag2 import Writer
+
+        writer = Writer(path, version=8)
+    g = {k.split("/")[-1]: T[k] for k in T if k.startswith("geometry_msgs/msg/")}
+    ser = ts.serialize_ros1 if ros1 else ts.serialize_cdr
+    zero3 = g["Vector3"](x=0.0, y=0.0, z=0.0)
+    with writer:
+        cs = writer.add_connection("/scan", "sensor_msgs/msg/LaserScan", typestore=ts)
+        co = writer.add_connection("/odom", "nav_msgs/msg/Odometry", typestore=ts)
+        cr = None
+        if with_range:
+            cr = writer.add_connection("/sonar", "sensor_msgs/msg/Range", typestore=ts)
+        for k in range(2 * n):
+            t = 1.0 + 0.1 * k
+            th = 0.02 * k
+            x, y = 0.0, 0.0
+            for j in range(k):  # the path of 5 cm chords turning 0.02 rad each
+                x += 0.05 * math.cos(0.02 * j + 0.01)
+                y += 0.05 * math.sin(0.02 * j + 0.01)
+            q = g["Quaternion"](x=0.0, y=0.0, z=math.sin(th / 2), w=math.cos(th / 2))
+            pose = g["Pose"](position=g["Point"](x=x, y=y, z=0.0), orientation=q)
+            odom = T["nav_msgs/msg/Odometry"](
+                header=hdr(t, "odom"),
+                child_frame_id="base_link",
+                pose=g["PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),
+                twist=g["TwistWithCovariance"](
+                    twist=g["Twist"](linear=zero3, angular=zero3), covariance=np.zeros(36)
+                ),
+            )
+            writer.write(co, int(t * 1e9), ser(odom, "nav_msgs/msg/Odometry"))
+            if k % 2 == 0:
+                continue
+            stamp = t - 0.5 if k == backwards_scan else t
+            r = np.full(181, 2.0, dtype=np.float32)
+            r[0], r[1], r[2] = np.inf, 0.01, 40.0  # no return, below range_min, beyond max
+            scan = T["sensor_msgs/msg/LaserScan"](
+                header=hdr(stamp, "laser"),
+                angle_min=-math.pi / 2,
+                angle_max=math.pi / 2,
+                angle_increment=math.pi / 180,
+                time_increment=0.0,
+                scan_time=0.1,
+                range_min=0.05,
+                range_max=30.0,
+                ranges=r,
+                intensities=np.zeros(0, dtype=np.float32),
+            )
+            writer.write(cs, int(t * 1e9), ser(scan, "sensor_msgs/msg/LaserScan"))
+            if cr is not None:
+                rng = T["sensor_msgs/msg/Range"](
+                    header=hdr(t, "sonar"),
+                    radiation_type=0,
+                    field_of_view=0.3,
+                    min_range=0.1,
+                    max_range=5.0,
+                    range=9.0 if k == 3 else 1.5,
+                )
+                writer.write(cr, int(t * 1e9), ser(rng, "sensor_msgs/msg/Range"))
