@@ -3,6 +3,11 @@
 One keyframe per front-end output (a laser scan, after its 6 s sonar window), with the
 odometry samples between keyframes preintegrated. The first keyframe is anchored at the
 log's true pose when it has one (so errors and NEES need no alignment), else at the origin.
+
+:class:`SlamPipeline` takes events one at a time (``fgslam online`` feeds it as data arrives;
+:func:`run_backends` loops over a log with it); a :class:`ReorderBuffer` in front of it puts
+events that arrive slightly out of time order (laser scans stamped at their first byte) back
+in order.
 """
 
 from __future__ import annotations
