@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOM = (-3.0, -2.0, 5.0, 3.0)  # x0, y0, x1, y1 (m)
+ROOM = (-2.5, -1.5, 3.0, 2.5)  # x0, y0, x1, y1 (m)
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
 
 

@@ -1,0 +1,140 @@
+"""SLAM on foreign logs: point SLAM (Victoria Park format) through the backends with given
+and own association; fgslam convert / run / evaluate on a CARMEN log."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from readers_helpers import DATA, carmen_text
+
+from fgslam.cli import main
+from fgslam.logfile import read_log
+from fgslam.readers.victoria import Sighting, Step, VictoriaPark, read_victoria
+from fgslam.slam.pointslam import association_agreement, run_points
+
+
+def synthetic_park(noise: float = 0.0, seed: int = 0) -> tuple[VictoriaPark, np.ndarray]:
+    """A robot driving two laps of an 18 m circle among 12 trees, with exact (or noisy)
+    odometry and sightings of the trees within 15 m. Returns the data and the true poses in
+    the frame of the first pose (where point SLAM starts)."""
+    rng = np.random.default_rng(seed)
+    trees = np.array(
+        [[22 * math.cos(a), 22 * math.sin(a)] for a in np.linspace(0, 2 * math.pi, 8, False)]
+        + [[14 * math.cos(a), 14 * math.sin(a)] for a in np.linspace(0.3, 2 * math.pi, 4, False)]
+    )
+    n = 160
+    poses = np.array(
+        [
+            [18 * math.cos(a), 18 * math.sin(a), a + math.pi / 2]
+            for a in np.linspace(0, 4 * math.pi, n + 1)
+        ]
+    )
+    data = VictoriaPark()
+    cov_o = np.diag([0.01, 0.01, 0.001]) ** 2 + np.eye(3) * 1e-6
+    idx = 0
+    for k in range(n + 1):
+        if k:
+            a, b = poses[k - 1], poses[k]
+            c, s = math.cos(a[2]), math.sin(a[2])
+            d = np.array(
+                [
+                    c * (b[0] - a[0]) + s * (b[1] - a[1]),
+                    -s * (b[0] - a[0]) + c * (b[1] - a[1]),
+                    math.remainder(b[2] - a[2], 2 * math.pi),
+                ]
+            )
+            d = d + noise * rng.standard_normal(3) * [0.01, 0.01, 0.001]
+            data.steps.append(Step(idx, idx + 1, d, cov_o))
+            idx += 1
+        p = poses[k]
+        c, s = math.cos(p[2]), math.sin(p[2])
+        for j, t in enumerate(trees):
+            dx, dy = t - p[:2]
+            xy = np.array([c * dx + s * dy, -s * dx + c * dy])
+            if np.hypot(*xy) < 15 and xy[0] > 0:
+                xy = xy + noise * rng.standard_normal(2) * 0.05
+                data.sightings.setdefault(idx, []).append(
+                    Sighting(idx, 1000 + j, xy, np.eye(2) * 0.05**2)
+                )
+    c, s = math.cos(poses[0, 2]), math.sin(poses[0, 2])
+    d = poses[:, :2] - poses[0, :2]
+    local = np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]])
+    return data, np.column_stack([local, poses[:, 2] - poses[0, 2]])
+
+
+@pytest.mark.parametrize("backend", ["ekf", "isam2", "batch"])
+def test_point_slam_exact_data(backend):
+    """Exact odometry and sightings: every backend recovers the true path, and the own
+    association finds exactly the given one."""
+    data, truth = synthetic_park()
+    for assoc in ("given", "own"):
+        r = run_points(data, backend, assoc)
+        assert r.poses.shape == truth.shape
+        assert np.abs(r.poses[:, :2] - truth[:, :2]).max() < 1e-3
+        if assoc == "own":
+            agree = association_agreement(r.assigned)
+            assert agree["purity"] == 1.0 and agree["unassigned"] == 0.0
+            assert agree["own_landmarks"] == agree["given_landmarks"] == len(r.landmarks)
+
+
+def test_point_slam_noisy_data_backends_agree():
+    """Noisy data: smoothing beats odometry alone, iSAM2 and batch agree closely, and the
+    own association matches the given one."""
+    data, truth = synthetic_park(noise=1.0, seed=3)
+    res = {b: run_points(data, b, "given") for b in ("ekf", "isam2", "batch")}
+    err = {
+        b: np.sqrt(np.mean(np.sum((r.poses[:, :2] - truth[:, :2]) ** 2, 1))) for b, r in res.items()
+    }
+    odo = res["batch"].odometry
+    odo_err = np.sqrt(np.mean(np.sum((odo[:, :2] - truth[:, :2]) ** 2, 1)))
+    assert err["batch"] < 0.5 * odo_err
+    assert np.abs(res["isam2"].poses - res["batch"].poses)[:, :2].max() < 0.05
+    own = run_points(data, "isam2", "own")
+    assert association_agreement(own.assigned)["purity"] == 1.0
+
+
+@pytest.mark.skipif(not (DATA / "victoria_park.txt").exists(), reason="no shared data")
+def test_victoria_park_start_through_isam2_and_batch():
+    """The first 300 steps of the real data: batch and iSAM2 agree to centimetres."""
+    data = read_victoria(DATA / "victoria_park.txt")
+    a = run_points(data, "isam2", "given", limit=300)
+    b = run_points(data, "batch", "given", limit=300)
+    assert len(a.poses) == 301 and len(a.landmarks) == len(b.landmarks) > 10
+    assert np.abs(a.poses[:, :2] - b.poses[:, :2]).max() < 0.05
+
+
+def test_convert_run_evaluate_carmen(tmp_path, capsys):
+    """A corrected CARMEN log of a robot in a room: converted to the native log, run
+    directly with laser-only EKF SLAM, evaluated against the log's reference poses."""
+    src = tmp_path / "room.log"
+    src.write_text(carmen_text(corrected=True))
+    out_log = tmp_path / "room.fgslam.log.gz"
+    assert main(["convert", str(src), "--out", str(out_log)]) == 0
+    text = capsys.readouterr().out
+    assert "30 LaserScan" in text and "30 TruthPose" in text and "reference poses" in text
+    header, events = read_log(out_log)
+    assert header.config.laser.n_beams == 180 and header.meta["carmen_mode"] == "corrected"
+    assert sum(type(e).__name__ == "LaserScan" for e in events) == 30
+    run_dir = tmp_path / "run"
+    assert (
+        main(["run", str(src), "--backend", "ekf", "--sensors", "laser", "--out", str(run_dir)])
+        == 0
+    )
+    text = capsys.readouterr().out
+    assert "not ground truth" in text
+    rep = json.loads((run_dir / "report.json").read_text())
+    assert rep["truth_source"] == "reference" and rep["poses"] == 30
+    assert rep["reader"]["skipped_by_reason"] == {"unknown record NEFF": 30}
+    assert rep["landmarks_total"] >= 3
+    assert rep["ate"]["rmse"] < rep["ate_odometry"]["rmse"]
+    report = tmp_path / "eval.json"
+    assert main(["evaluate", str(run_dir), "--reference", str(src), "--out", str(report)]) == 0
+    ev = json.loads(report.read_text())
+    assert ev["reference_kind"] == "reference" and ev["poses_compared"] == 30
+    assert ev["ate"]["rmse"] == pytest.approx(rep["ate"]["rmse"], abs=1e-3)
+    # bad input is one line on stderr
+    assert main(["convert", str(tmp_path / "missing.log"), "--out", str(out_log)]) == 2
+    assert "no such file" in capsys.readouterr().err
