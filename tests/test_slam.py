@@ -241,3 +241,27 @@ def test_alignment_and_ate_by_hand():
     assert math.isclose(a["rmse"], 0.05) and math.isclose(a["max"], 0.1)
     n = evaluation.nees(ref + np.array([0.1, 0, 0]), np.array([np.eye(3) * 0.01] * 4), ref)
     assert math.isclose(n["mean"], 1.0)
+
+
+@pytest.mark.parametrize("kind,dimz", [("line", 2), ("corner", 3), ("corner", 2), ("point", 2)])
+def test_vectorised_residuals_match_the_model(kind, dimz):
+    """The association's vectorised pre-gate residuals equal the model's residual, including
+    lines seen from behind (the flipped form), wrap-around angles and sonar-only corners."""
+    from fgslam.slam import models
+
+    rng = np.random.default_rng(7)
+    for _ in range(50):
+        pose = rng.uniform([-5, -5, -math.pi], [5, 5, math.pi])
+        n = 20
+        if kind == "line":
+            lms = np.column_stack([rng.uniform(-math.pi, math.pi, n), rng.uniform(0, 8, n)])
+        else:
+            lms = rng.uniform([-8, -8, -math.pi], [8, 8, math.pi], (n, 3))[:, : models.DIM[kind]]
+        z = rng.uniform([-math.pi, 0.1, -math.pi], [math.pi, 6, math.pi])[:dimz]
+        got = models.residuals(kind, pose, lms, z)
+        want = np.array([models.residual(kind, pose, lm, z)[0] for lm in lms])
+        diff = got - want
+        # angles may differ by 2 pi only exactly at +-pi
+        for j in (0, 2)[: 1 + (dimz == 3)]:  # bearing, and a corner's bisector
+            diff[:, j] = np.remainder(diff[:, j] + math.pi, 2 * math.pi) - math.pi
+        np.testing.assert_allclose(diff, 0.0, atol=1e-9)

@@ -109,24 +109,20 @@ class MapManager:
 
     def _candidates(self, pose, means_hint: dict[int, NDArray[np.float64]]) -> list[int]:
         """Active landmarks within ``max_range`` of the robot (lines: of their segment)."""
-        ids, a, b = [], [], []
-        for lid, lm in self.landmarks.items():
-            if not lm.active or lid not in means_hint:
-                continue
-            m = means_hint[lid]
-            if lm.kind == "line" and lm.extent is not None:
-                e = line_endpoints(m, lm.extent)
-                a.append(e[0])
-                b.append(e[1])
-            else:
-                p = models.position(lm.kind, m)
-                a.append(p)
-                b.append(p)
-            ids.append(lid)
+        ids = [lid for lid, lm in self.landmarks.items() if lm.active and lid in means_hint]
         if not ids:
             return []
-        A, B = np.array(a), np.array(b)
-        ab = B - A
+        ends = np.empty((len(ids), 4))  # segment ends a, b (a point: a = b)
+        for i, lid in enumerate(ids):
+            lm, m = self.landmarks[lid], means_hint[lid]
+            if lm.kind == "line":
+                c, s = math.cos(m[0]), math.sin(m[0])
+                e0, e1 = lm.extent if lm.extent is not None else (0.0, 0.0)
+                fx, fy = m[1] * c, m[1] * s
+                ends[i] = (fx - e0 * s, fy + e0 * c, fx - e1 * s, fy + e1 * c)
+            else:
+                ends[i] = (m[0], m[1], m[0], m[1])
+        A, ab = ends[:, :2], ends[:, 2:] - ends[:, :2]
         t = np.clip(
             np.sum((pose[:2] - A) * ab, axis=1) / np.maximum(np.sum(ab * ab, axis=1), 1e-12), 0, 1
         )
@@ -151,14 +147,19 @@ class MapManager:
             list[tuple[int, NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]]
         ] = []
         needed: set[int] = set()
+        by_kind: dict[str, tuple[list[int], NDArray[np.float64]]] = {}
+        for kind in {f.kind for f in features}:
+            lids = [lid for lid in cands if self.landmarks[lid].kind == kind]
+            by_kind[kind] = (lids, np.array([means_hint[lid] for lid in lids]))
         for f in features:
             rows = []
-            for lid in cands:
-                lm = self.landmarks[lid]
-                if lm.kind != f.kind:
-                    continue
-                e, Hx, Hl = models.residual(f.kind, pose, means_hint[lid], f.z)
-                if np.all(np.abs(e) < self.p.pregate[: len(e)]):
+            lids, M = by_kind[f.kind]
+            if lids:
+                E = models.residuals(f.kind, pose, M, f.z)
+                ok = np.all(np.abs(E) < self.p.pregate[: len(f.z)], axis=1)
+                for i in np.flatnonzero(ok):
+                    lid = lids[i]
+                    e, Hx, Hl = models.residual(f.kind, pose, means_hint[lid], f.z)
                     rows.append((lid, e, Hx, Hl))
                     needed.add(lid)
             pre.append(rows)

@@ -44,6 +44,31 @@ def residual(
     return point_residual(pose, lm, z)
 
 
+def residuals(
+    kind: str, pose: NDArray[np.float64], lms: NDArray[np.float64], z: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """:func:`residual` without Jacobians for many landmarks at once: ``lms`` (n, dim) world
+    parameters, one measurement ``z``; returns (n, len(z)). Vectorised for the association's
+    pre-gate, which tries every nearby landmark against every feature of a scan."""
+    x, y, th = (float(v) for v in pose)
+    lms = np.asarray(lms, dtype=float).reshape(-1, DIM[kind])
+    if kind == "line":
+        aw, dw = lms[:, 0], lms[:, 1]
+        e0 = np.remainder(aw - th - z[0] + math.pi, 2 * math.pi) - math.pi
+        flip = np.abs(e0) > 0.5 * math.pi  # the (alpha + pi, -d) form of the prediction
+        e0 = np.where(flip, np.remainder(e0 + 2 * math.pi, 2 * math.pi) - math.pi, e0)
+        d = dw - x * np.cos(aw) - y * np.sin(aw)
+        return np.column_stack([e0, np.where(flip, -d, d) - z[1]])
+    dx, dy = lms[:, 0] - x, lms[:, 1] - y
+    cols = [
+        np.remainder(np.arctan2(dy, dx) - th - z[0] + math.pi, 2 * math.pi) - math.pi,
+        np.hypot(dx, dy) - z[1],
+    ]
+    if len(z) == 3:  # a laser corner: its bisector
+        cols.append(np.remainder(lms[:, 2] - th - z[2] + math.pi, 2 * math.pi) - math.pi)
+    return np.column_stack(cols)
+
+
 def to_world(
     kind: str, pose: NDArray[np.float64], z: NDArray[np.float64]
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
