@@ -422,3 +422,18 @@ def test_ros_bag_without_odometry(tmp_path):
         w.add_connection("/chatter", "std_msgs/msg/String", typestore=ts)
     with pytest.raises(ReaderError, match=r"no sensor_msgs/msg/LaserScan topic.*/chatter"):
         open_log(p)
+
+
+def test_ros_bag_convert_command(bag, tmp_path, capsys):
+    from fgslam.cli import main
+    from fgslam.logfile import read_log
+
+    out = tmp_path / "bag.log.gz"
+    assert main(["convert", str(bag), "--range-topic", "/sonar", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "9 LaserScan" in text and "10 SonarReading" in text and "'/scan': 1" in text
+    header, events = read_log(out)
+    assert header.meta["scan_topic"] == "/scan" and len(header.config.sonar.arrays) == 1
+    assert sum(isinstance(e, LaserScan) for e in events) == 9
+    assert main(["convert", str(bag), "--odom-topic", "/nope", "--out", str(out)]) == 2
+    assert "the bag has: /odom" in capsys.readouterr().err
