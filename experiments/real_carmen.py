@@ -14,7 +14,6 @@ file (reference, odometry and the estimates, aligned to the reference).
 from __future__ import annotations
 
 import argparse
-import itertools
 import time
 from pathlib import Path
 
@@ -84,39 +83,31 @@ def run(name: str, backends: list[str], max_scans: int | None) -> list[dict]:
     return rows
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--logs", nargs="+", default=["intel", "freiburg-079"])
-    ap.add_argument("--backends", nargs="+", default=["ekf", "isam2", "batch"])
-    ap.add_argument("--max-scans", type=int, help="only the first N scans of each log")
-    args = ap.parse_args()
-    rows = list(
-        itertools.chain.from_iterable(run(n, args.backends, args.max_scans) for n in args.logs)
-    )
+HEADER = (
+    "| log | backend | scans | path (m) | landmarks | ATE RMSE (m) | ATE max (m) "
+    "| odometry ATE RMSE (m) | RPE 1 m trans (m) | RPE 1 m rot (deg) | odometry RPE trans / "
+    "rot | time (s) |\n|---|---|---|---|---|---|---|---|---|---|---|---|"
+)
+
+
+def print_row(r: dict) -> None:
+    if "error" in r:
+        print(f"| {r['log']} | {r['backend']} | failed: {r['error']} |", flush=True)
+        return
+    lm = ", ".join(f"{v} {k}s" for k, v in r["landmarks"].items())
     print(
-        "| log | backend | scans | path (m) | landmarks | ATE RMSE (m) | ATE max (m) "
-        "| odometry ATE RMSE (m) | RPE 1 m trans (m) | RPE 1 m rot (deg) | odometry RPE trans / "
-        "rot | time (s) |"
+        f"| {r['log']} | {r['backend']} | {r['scans']} | {r['distance']:.0f} | {lm} "
+        f"| {r['ate']['rmse']:.2f} | {r['ate']['max']:.2f} | {r['ate_odo']['rmse']:.2f} "
+        f"| {r['rpe']['trans_rmse']:.3f} | {r['rpe']['rot_rmse_deg']:.2f} "
+        f"| {r['rpe_odo']['trans_rmse']:.3f} / {r['rpe_odo']['rot_rmse_deg']:.2f} "
+        f"| {r['wall']:.0f} |",
+        flush=True,
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
-    for r in rows:
-        if "error" in r:
-            print(f"| {r['log']} | {r['backend']} | failed: {r['error']} |")
-            continue
-        lm = ", ".join(f"{v} {k}s" for k, v in r["landmarks"].items())
-        print(
-            f"| {r['log']} | {r['backend']} | {r['scans']} | {r['distance']:.0f} | {lm} "
-            f"| {r['ate']['rmse']:.2f} | {r['ate']['max']:.2f} | {r['ate_odo']['rmse']:.2f} "
-            f"| {r['rpe']['trans_rmse']:.3f} | {r['rpe']['rot_rmse_deg']:.2f} "
-            f"| {r['rpe_odo']['trans_rmse']:.3f} / {r['rpe_odo']['rot_rmse_deg']:.2f} "
-            f"| {r['wall']:.0f} |"
-        )
-    for name in args.logs:
-        ok = [r for r in rows if r["log"] == name and "error" not in r]
-        if ok:
-            print(f"{name}: reader: {ok[0]['problems']}")
+
+
+def plot(rows: list[dict], logs: list[str]) -> None:
     ok = [r for r in rows if "error" not in r]
-    names = [n for n in args.logs if any(r["log"] == n for r in ok)]
+    names = [n for n in logs if any(r["log"] == n for r in ok)]
     if not names:
         return
     fig, axes = plt.subplots(1, len(names), figsize=(8 * len(names), 7), squeeze=False)
@@ -144,6 +135,27 @@ def main() -> None:
         ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(Path(__file__).with_suffix(".png"), dpi=80)
+    plt.close(fig)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--logs", nargs="+", default=["intel", "freiburg-079"])
+    ap.add_argument("--backends", nargs="+", default=["ekf", "isam2", "batch"])
+    ap.add_argument("--max-scans", type=int, help="only the first N scans of each log")
+    args = ap.parse_args()
+    print(HEADER, flush=True)
+    rows: list[dict] = []
+    for name in args.logs:  # rows and the figure as each log finishes
+        new = run(name, args.backends, args.max_scans)
+        for r in new:
+            print_row(r)
+        rows += new
+        plot(rows, args.logs)
+    for name in args.logs:
+        ok = [r for r in rows if r["log"] == name and "error" not in r]
+        if ok:
+            print(f"{name}: reader: {ok[0]['problems']}")
 
 
 if __name__ == "__main__":
