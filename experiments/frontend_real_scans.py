@@ -3,12 +3,13 @@
 Run: python experiments/frontend_real_scans.py [--scans 300 1100 1900 2700 3500 4300]
        [--every 10]
 Reads the given scans (0-based indices among the FLASER lines) of
-``../shared/data/freiburg-079-corrected.log.gz`` (relative to the repository root) with a small
-local CARMEN parser, and runs the front end's per-scan processing (``FrontEnd.process_scan`` in
-"laser" mode: segmentation, polar line fits, right-angle corner fits) on each with a robot
-configuration for that laser: n beams over 180 deg (the configuration's bearings: first beam at
--90 deg), mounted at the robot origin, 1 cm range resolution, sigma_range 1 cm, readings of
-80 m or more (the LMS's "no return" codes, 81.91) treated as no return. The robot's speed is
+``../shared/data/freiburg-079-corrected.log.gz`` (relative to the repository root) with the
+CARMEN reader (fgslam.readers.carmen), and runs the front end's per-scan processing
+(``FrontEnd.process_scan`` in "laser" mode: segmentation, polar line fits, right-angle corner
+fits) on each with the reader's robot configuration for that laser: n beams over 180 deg (the
+configuration's bearings: first beam at -90 deg), mounted at the robot origin, 1 cm range
+resolution, sigma_range 1 cm, readings of 80 m or more (the LMS's "no return" codes, 81.91) as
+no return. The robot's speed is
 taken as zero (no time-registration inflation). Prints per scan the lines, corners and the
 rejections counted in the scan's statistics, and draws the scans with their features in a
 2 x 3 grid to frontend_real_scans.png next to this file (robot frame, x forward). The scans
@@ -19,8 +20,6 @@ drawn are evenly spread over the log, not chosen for their features; a summary o
 from __future__ import annotations
 
 import argparse
-import dataclasses
-import gzip
 import math
 from pathlib import Path
 
@@ -30,51 +29,23 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from fgslam.config import Mount, load_config
 from fgslam.events import LaserScan
 from fgslam.frontend.pipeline import FrontEnd
+from fgslam.readers.carmen import CarmenLog
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
 LOG = DATA / "freiburg-079-corrected.log.gz"
-NO_RETURN = 80.0  # m: the LMS reports "no return" as 81.91 (robot_front_laser_max 80.99)
 
 
-def read_flaser(path: Path) -> tuple[np.ndarray, list[np.ndarray]]:
-    """Timestamps (s) and ranges (m) of every FLASER record of a CARMEN log:
-    ``FLASER n r_1 .. r_n x y theta odom_x odom_y odom_theta timestamp host logger_timestamp``
-    """
-    times, ranges = [], []
-    with gzip.open(path, "rt") as f:
-        for lineno, line in enumerate(f, 1):
-            if not line.startswith("FLASER "):
-                continue
-            tok = line.split()
-            n = int(tok[1])
-            if len(tok) != n + 11:
-                raise ValueError(f"{path}:{lineno}: FLASER with {len(tok)} fields, not {n + 11}")
-            ranges.append(np.array(tok[2 : 2 + n], dtype=float))
-            times.append(float(tok[2 + n + 6]))
-    return np.array(times), ranges
-
-
-def lms_config(n: int):
-    """The default robot configuration with its laser replaced by the SICK LMS of the log."""
-    cfg = load_config()
-    laser = dataclasses.replace(
-        cfg.laser,
-        n_beams=n,
-        fov_deg=180.0,
-        mount=Mount(0.0, 0.0, 0.0),
-        range_resolution=0.01,
-        sigma_range=0.01,
-        max_range=NO_RETURN,
-    )
-    return dataclasses.replace(cfg, laser=laser)
+def read_scans(path: Path):
+    """The reader's configuration, and the timestamps (s) and ranges (m, NaN = no return) of
+    every scan of a CARMEN log."""
+    log = CarmenLog(path)
+    scans = [e for e in log if isinstance(e, LaserScan)]
+    return log.config, np.array([s.t for s in scans]), [s.ranges for s in scans]
 
 
 def extract(fe: FrontEnd, t: float, r: np.ndarray):
-    r = r.copy()
-    r[r >= NO_RETURN] = np.nan
     return r, fe.process_scan(LaserScan(t, r), 0.0, 0.0)
 
 
@@ -88,9 +59,8 @@ def main() -> None:
     ap.add_argument("--every", type=int, default=10, help="summary over every k-th scan")
     ap.add_argument("--log", type=Path, default=LOG)
     args = ap.parse_args()
-    times, ranges = read_flaser(args.log)
-    n = len(ranges[0])
-    cfg = lms_config(n)
+    cfg, times, ranges = read_scans(args.log)
+    n = cfg.laser.n_beams
     fe = FrontEnd(cfg, "laser")
     phi = cfg.laser.bearings
     print(f"{args.log.name}: {len(ranges)} scans of {n} beams over 180 deg")
