@@ -437,3 +437,34 @@ def test_ros_bag_convert_command(bag, tmp_path, capsys):
     assert sum(isinstance(e, LaserScan) for e in events) == 9
     assert main(["convert", str(bag), "--odom-topic", "/nope", "--out", str(out)]) == 2
     assert "the bag has: /odom" in capsys.readouterr().err
+
+
+def test_carmen_robotlaser1(tmp_path):
+    """ROBOTLASER1: field of view, start angle and the laser's mount (laser pose relative to
+    the robot pose) from the record; a raw log, odometry from ODOM lines."""
+    n = 91
+    lines = []
+    for k in range(3):
+        t = 1.0 + k
+        x = 0.1 * k
+        ranges = " ".join(["2.5"] * n)
+        lines.append(f"ODOM {x} 0 0 0 0 0 {t} h {t}")
+        lines.append(
+            f"ROBOTLASER1 0 -0.785398 1.570796 0.017453 30 0.01 0 {n} {ranges} 2 7 8 "
+            f"{x + 0.2} 0.05 0.1 {x} 0 0 0.1 0 0.5 0.3 1e6 {t} h {t}"
+        )
+    f = tmp_path / "rl.log"
+    f.write_text("\n".join(lines) + "\n")
+    log = open_log(f)
+    assert log.mode == "raw"
+    laser = log.config.laser
+    assert laser.n_beams == n and laser.fov_deg == pytest.approx(90.0, abs=1e-4)
+    assert (laser.mount.x, laser.mount.y) == pytest.approx((0.2, 0.05))
+    assert laser.mount.yaw_deg == pytest.approx(math.degrees(0.1), abs=1e-4)
+    events = list(log)
+    scans = [e for e in events if isinstance(e, LaserScan)]
+    assert [s.t for s in scans] == [1.0, 2.0, 3.0]
+    assert odometry_between_scans(events, log.config)[2] == pytest.approx([0.1, 0, 0], abs=2e-4)
+    f.write_text(lines[1][:-20] + "\n")
+    with pytest.raises(ReaderError, match="ROBOTLASER1"):
+        list(open_log(f, format="carmen"))

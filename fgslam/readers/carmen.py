@@ -109,10 +109,11 @@ def parse_record(f: list[str]) -> dict:
         if len(f) < 10 + n:
             raise _Bad("ROBOTLASER1: too few fields for its ranges")
         m = _int(f[9 + n], "ROBOTLASER1 remission count")
-        if len(f) != 10 + n + m + 15:
-            raise _Bad(f"ROBOTLASER1: expected {25 + n + m} fields, got {len(f)}")
+        if len(f) != 10 + n + m + 14:
+            raise _Bad(f"ROBOTLASER1: expected {24 + n + m} fields, got {len(f)}")
         head = _floats(f[2:7], "ROBOTLASER1")
         ranges = _floats(f[9 : 9 + n], "ROBOTLASER1 ranges")
+        # laser pose, robot pose, tv, rv, forward/side safety, turn axis, timestamp
         tail = _floats(f[10 + n + m : 10 + n + m + 12], "ROBOTLASER1")
         fov = math.degrees(head[1])
         if not 0 < fov <= 360:
@@ -123,7 +124,7 @@ def parse_record(f: list[str]) -> dict:
             "pose": tuple(tail[3:6]),
             "odom": tuple(tail[3:6]),
             "laser_pose": tuple(tail[0:3]),
-            "t": _floats([f[10 + n + m + 12]], "ROBOTLASER1 timestamp")[0],
+            "t": tail[11],
             "fov": fov,
             "start": head[0],
         }
