@@ -152,3 +152,23 @@ def test_evaluate_command(tmp_path, capsys):
     rc = main(["evaluate", str(tmp_path / "est.tum"), "--reference", str(tmp_path / "nope")])
     assert rc == 2
     assert "no such file" in capsys.readouterr().err
+
+
+def test_evaluate_run_against_simulated_log(tmp_path, capsys):
+    """A simulated log as the reference: ground truth poses and the true map; the ATE is the
+    one the run reported, the map error is that of outputs.map_error."""
+    log = tmp_path / "sim.log.gz"
+    assert main(["simulate", "--seed", "4", "--duration", "15", "--out", str(log)]) == 0
+    run = tmp_path / "run"
+    assert main(["run", str(log), "--backend", "ekf", "--out", str(run)]) == 0
+    out = tmp_path / "eval.json"
+    assert main(["evaluate", str(run), "--reference", str(log), "--out", str(out)]) == 0
+    rep = json.loads(out.read_text())
+    run_rep = json.loads((run / "report.json").read_text())
+    assert rep["reference_kind"] == "ground truth"
+    assert rep["ate"]["rmse"] == pytest.approx(run_rep["ate"]["rmse"], abs=1e-4)
+    assert rep["map_error"].keys() == run_rep["map_error"].keys()
+    for k, v in rep["map_error"].items():
+        assert v["n"] == run_rep["map_error"][k]["n"]
+        assert v["median"] == pytest.approx(run_rep["map_error"][k]["median"], abs=1e-3)
+    assert "map error" in capsys.readouterr().out
