@@ -21,6 +21,12 @@ Typical use:
   fgslam config --config my_robot.toml  validate your robot file and show the merged result
   fgslam simulate --seed 1 --out run.log.gz     the paper's lab-and-corridor run, simulated
   fgslam plot-log run.log.gz --out run.png      look at it
+  fgslam run run.log.gz --backend isam2 --out out/   SLAM on a log (native, CARMEN, ROS bag)
+  fgslam compare run.log.gz --out cmp/          EKF, iSAM2, batch x fused, laser, sonar
+  fgslam demo                                   simulate the built-in run and compare
+  fgslam evaluate out/trajectory.tum --reference ref.tum   ATE, RPE, NEES
+  fgslam emulate --speed 4 --link-dir /tmp/robot   emulated devices on pseudo-terminals
+  fgslam online --laser PORT --sonar PORT --sonar PORT --odom PORT --out DIR   live SLAM
 
 Frames follow REP-103 (x forward, y left, yaw counter-clockwise); units are SI.
 """
