@@ -269,16 +269,23 @@ def test_intel_reader():
     events = list(log)
     kinds = Counter(type(e).__name__ for e in events)
     assert kinds["LaserScan"] == kinds["TruthPose"] == 906  # 910 scans, 4 stamped backwards
-    assert log.problems.backwards == Counter({"FLASER": 4})
+    # 4 scans and 1317 of 13 700 ODOM lines stamped before the last delivered event, 150
+    # ODOM lines stamped after the scan that follows them: counted, their motion carried
+    assert log.problems.backwards == Counter(
+        {"FLASER": 4, "ODOM": 1317, "ODOM after its scan": 150}
+    )
     assert log.problems.skipped_by_reason == Counter({"unknown record NEFF": 910})
     times = [e.t for e in events]
     assert times == sorted(times)
-    # the odometry integrated between scans equals the rule's increments (where no scan was
-    # dropped before), to the virtual drive's chord approximation
+    # the odometry integrated between scans (the ODOM lines' path, sample by sample) ends
+    # where the rule's increment does: heading exactly, position to ~1 mm (median; up to
+    # ~1 cm where an ODOM line's own chord is bent), over the scans before the first dropped one
     d = odometry_check(INTEL)["increment"]
     odo = odometry_between_scans(events, log.config)
-    for k in range(1, 200):
-        assert_increment(odo[k], d[k - 1])
+    dth = np.remainder(odo[1:251, 2] - d[:250, 2] + math.pi, 2 * math.pi) - math.pi
+    assert np.abs(dth).max() < 2e-4
+    e = np.hypot(*(odo[1:251, :2] - d[:250, :2]).T)
+    assert np.median(e) < 0.003 and e.max() < 0.02
 
 
 @needs[FREIBURG]
@@ -286,7 +293,7 @@ def test_freiburg_reader():
     log = open_log(FREIBURG)
     assert log.config.laser.n_beams == 360
     n = sum(isinstance(e, LaserScan) for e in log)
-    assert n == 4791 and not log.problems.backwards
+    assert n == 4791 and log.problems.backwards == Counter({"ODOM": 18})
     d = odometry_check(FREIBURG)
     e = np.hypot(*(d["increment"] - d["corrected"])[:, :2].T)
     g = np.hypot(*(d["global"] - d["corrected"])[:, :2].T)

@@ -16,9 +16,10 @@ Two kinds of log (``mode``, detected by default):
   FLASER pose fields hold the corrected pose P_k, the ``ODOM`` lines between scans hold
   P_{k-1} composed with the raw odometry since scan k-1, and an ``ODOM`` line stamped 0 after
   each scan repeats P_k. The raw odometry increment between scans k-1 and k is therefore
-  ``inverse(P_{k-1}) * ODOM_before_k`` (``ODOM_before_k``: the last ODOM line before scan k);
-  it becomes one odometry sample stamped at scan k, and P_k a ``TruthPose`` (the
-  *reference* trajectory, not ground truth).
+  ``inverse(P_{k-1}) * ODOM_before_k`` (``ODOM_before_k``: the last ODOM line before scan k).
+  Each ODOM line between the scans, taken relative to P_{k-1}, gives the odometry path
+  sample by sample up to that increment; P_k becomes a ``TruthPose`` (the *reference*
+  trajectory, not ground truth).
 - **raw**: ``ODOM`` lines are cumulative wheel odometry; each one's increment over the
   previous one becomes an odometry sample. ``TRUEPOS`` lines (simulated logs) are ground
   truth.
@@ -27,9 +28,10 @@ Odometry increments become encoder ticks of the virtual differential drive of
 :func:`fgslam.readers.common.derived_config` (:class:`~fgslam.readers.common.VirtualDrive`).
 Ranges at or beyond ``no_return`` (m, the LMS reports no return as 81.91) or <= 0 are NaN.
 Records of other types (``NEFF``, ``RLASER``, ``SYNC``, ...) are skipped and counted. A scan
-stamped earlier than the previous scan is skipped and counted (its odometry carried to the
-next sample); odometry stamped backwards is carried into the next sample: events are never
-reordered and every emitted stream is monotonic.
+stamped earlier than the last delivered event is skipped and counted (its odometry carried to
+the next sample); an ODOM line stamped before the last delivered event, or (corrected logs)
+after the scan that follows it, is counted and its motion carried into the next sample:
+events are never reordered and their stamps never go backwards.
 """
 
 from __future__ import annotations
@@ -245,7 +247,7 @@ class CarmenLog(Source):
         last_scan_t = -math.inf
         last_odo_t = -math.inf
         base = (0.0, 0.0, 0.0)  # corrected: P_{k-1}; raw: the last ODOM pose used
-        odo_rel = np.zeros(3)  # corrected: the last ODOM relative to base
+        pending: list[tuple[float, np.ndarray]] = []  # corrected: ODOMs relative to P_{k-1}
         carried = np.zeros(3)  # motion not yet delivered (an increment)
         have_odom = False
         for lineno, rec in self._records():
@@ -261,10 +263,8 @@ class CarmenLog(Source):
             t = rec["t"]
             if tag == "ODOM":
                 if self.mode == "corrected":
-                    if t == 0.0:
-                        continue  # the repeat of the corrected pose after a scan
-                    odo_rel = relative(base, rec["pose"])
-                    have_odom = True
+                    if t != 0.0:  # stamp 0: the repeat of the corrected pose after a scan
+                        pending.append((t, relative(base, rec["pose"])))
                     continue
                 if not have_odom:
                     base, have_odom = rec["pose"], True
@@ -285,6 +285,8 @@ class CarmenLog(Source):
                     self.reference_kind = "ground truth"
                     if t >= last_odo_t:
                         yield TruthPose(t, *rec["pose"])
+                    else:
+                        pr.backwards["TRUEPOS"] += 1
                 continue
             # a scan
             ranges = np.asarray(rec["ranges"], dtype=float)
@@ -295,17 +297,28 @@ class CarmenLog(Source):
                     f"{self.n_beams}",
                 )
                 continue
+            backwards = t < last_scan_t or t < last_odo_t
             if self.mode == "corrected":
-                carried = compose(carried, odo_rel)
-                base, odo_rel = rec["pose"], np.zeros(3)
+                # the ODOM lines since scan k-1, relative to P_{k-1}: one sample each when
+                # stamped in order up to this scan, else carried into the next sample
+                emitted = np.zeros(3)
+                for ti, rel in pending if not backwards else ():
+                    if last_odo_t <= ti <= t:
+                        yield from drive.ticks(ti, compose(carried, relative(emitted, rel)))
+                        carried, emitted, last_odo_t = np.zeros(3), rel, ti
+                    else:
+                        pr.backwards["ODOM" if ti < last_odo_t else "ODOM after its scan"] += 1
+                final = pending[-1][1] if pending else emitted
+                carried = compose(carried, relative(emitted, final))
+                base, pending = rec["pose"], []
             elif not have_odom:  # raw log without ODOM lines: the scan's odometry field
                 if last_scan_t > -math.inf:
                     carried = compose(carried, relative(base, rec["odom"]))
                 base = rec["odom"]
-            if t < last_scan_t or t < last_odo_t:
+            if backwards:
                 pr.backwards[tag] += 1
                 continue  # the scan is dropped; its motion stays in `carried`
-            if self.mode == "corrected" or not have_odom:
+            if (self.mode == "corrected" or not have_odom) and np.any(carried != 0):
                 yield from drive.ticks(t, carried)
                 carried = np.zeros(3)
                 last_odo_t = t
