@@ -111,7 +111,7 @@ def print_row(r: dict) -> None:
     )
 
 
-def plot(rows: list[dict], logs: list[str]) -> None:
+def plot(rows: list[dict], logs: list[str], png: Path) -> None:
     ok = [r for r in rows if "error" not in r]
     names = [n for n in logs if any(r["log"] == n for r in ok)]
     if not names:
@@ -140,7 +140,7 @@ def plot(rows: list[dict], logs: list[str]) -> None:
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(Path(__file__).with_suffix(".png"), dpi=80)
+    fig.savefig(png, dpi=80)
     plt.close(fig)
 
 
@@ -156,6 +156,9 @@ def main() -> None:
         help="the EKF on the first N scans only (default 1200: its cost per update grows with "
         "the square of the map, and Freiburg 079's full map takes it hours)",
     )
+    ap.add_argument(
+        "--png", type=Path, default=Path(__file__).with_suffix(".png"), help="figure to write"
+    )
     args = ap.parse_args()
     print(HEADER, flush=True)
     rows: list[dict] = []
@@ -164,7 +167,7 @@ def main() -> None:
         for r in new:
             print_row(r)
         rows += new
-        plot(rows, args.logs)
+        plot(rows, args.logs, args.png)
     for name in args.logs:
         ok = [r for r in rows if r["log"] == name and "error" not in r]
         if ok:
