@@ -120,21 +120,22 @@ def plot(rows: list[dict], logs: list[str], png: Path) -> None:
     colors = {"ekf": "tab:red", "isam2": "tab:blue", "batch": "tab:green"}
     for ax, name in zip(axes[0], names, strict=True):
         mine = [r for r in ok if r["log"] == name]
-        ref = mine[0]["ref"]
-        odo = mine[0]["res"].odometry
+        longest = max(mine, key=lambda r: len(r["ref"]))  # the EKF may have a prefix only
+        ref = longest["ref"]
+        odo = longest["res"].odometry
         ax.plot(ref[:, 0], ref[:, 1], "-", color="0.5", lw=1.2, label="reference (corrected)")
         o = evaluation.apply_se2(*evaluation.align_se2(odo, ref), odo)
         ax.plot(o[:, 0], o[:, 1], ":", color="tab:orange", lw=1.0, label="odometry")
         for r in mine:
             p = r["res"].poses
-            p = evaluation.apply_se2(*evaluation.align_se2(p, ref), p)
+            p = evaluation.apply_se2(*evaluation.align_se2(p, r["ref"]), p)
             ax.plot(
                 p[:, 0],
                 p[:, 1],
                 "-",
                 color=colors[r["backend"]],
                 lw=0.8,
-                label=f"{r['backend']} (ATE {r['ate']['rmse']:.2f} m)",
+                label=f"{r['backend']}, {r['scans']} scans (ATE {r['ate']['rmse']:.2f} m)",
             )
         ax.set(aspect="equal", title=f"{name}: laser-only lines and corners", xlabel="x (m)")
         ax.grid(alpha=0.3)
