@@ -171,8 +171,8 @@ def main() -> None:
         plot(rows, args.logs, args.png)
     for name in args.logs:
         ok = [r for r in rows if r["log"] == name and "error" not in r]
-        if ok:
-            print(f"{name}: reader: {ok[0]['problems']}")
+        if ok:  # the reader's counts over the longest read
+            print(f"{name}: reader: {max(ok, key=lambda r: r['scans'])['problems']}")
 
 
 if __name__ == "__main__":
