@@ -155,7 +155,7 @@ def main() -> None:
         type=int,
         default=1200,
         help="the EKF on the first N scans only (default 1200: its cost per update grows with "
-        "the square of the map; on the whole Freiburg 079 log it did not finish in 10 minutes)",
+        "the square of the map; on the whole Freiburg 079 log it had not finished after 6 minutes)",
     )
     ap.add_argument(
         "--png", type=Path, default=Path(__file__).with_suffix(".png"), help="figure to write"
