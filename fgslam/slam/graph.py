@@ -200,7 +200,7 @@ class GraphBackend(Backend):
         except RuntimeError as exc:  # IndeterminantLinearSystemException and kin
             raise BackendError(
                 f"iSAM2 could not solve keyframe {self.k} (t = {self._pending_t:.2f} s): "
-                f"{str(exc).splitlines()[0]}"
+                f"{_reason(exc)}"
             ) from None
         self.graph.push_back(self.new_graph)
         # start a new empty graph: re-adding factors would silently double information
@@ -232,7 +232,7 @@ class GraphBackend(Backend):
                 self.graph, self.isam.calculateEstimate(), dims
             )
         except RuntimeError as exc:
-            raise BackendError(f"batch optimisation failed: {str(exc).splitlines()[0]}") from None
+            raise BackendError(f"batch optimisation failed: {_reason(exc)}") from None
         self.batch = True
         self.name = "batch"
         self._marg = None
@@ -334,6 +334,19 @@ def levenberg_marquardt(
         if rel < rel_tol:
             break
     return values, it
+
+
+def _reason(exc: BaseException) -> str:
+    """The first paragraph of a GTSAM exception's message on one line (the
+    indeterminate-system message starts with a blank line and names the variable on its
+    second line)."""
+    words = []
+    for line in str(exc).splitlines():
+        if line.strip():
+            words.append(line.strip())
+        elif words:
+            break
+    return " ".join(words) or f"{type(exc).__name__} (GTSAM gave no message)"
 
 
 def _blockdiag(blocks: list[NDArray[np.float64]]) -> NDArray[np.float64]:
