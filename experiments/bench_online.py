@@ -114,13 +114,7 @@ def online(ports: DevicePorts, after: Callable[[], None] | None = None) -> dict[
 def in_process(speed: float, duration: float, seed: int) -> dict[str, Any]:
     emu = start_emulators(CFG, load_world("corridor"), seed=seed, speed=speed, duration=duration)
     try:
-        with DevicePorts(
-            CFG,
-            laser=emu.ports["laser"],
-            sonar=emu.ports["sonar"],
-            odometry=emu.ports["odometry"],
-            clock=emu.clock,
-        ) as ports:
+        with DevicePorts.for_emulation(CFG, emu) as ports:
             m = online(ports)
         st = emu.stats()
     finally:

@@ -178,6 +178,19 @@ class DevicePorts:
         }
         self._started = False
 
+    @classmethod
+    def for_emulation(cls, cfg: RobotConfig, emu: Emulation, **kw: Any) -> DevicePorts:
+        """Ports of emulated devices (:func:`start_emulators`), sharing the emulation's clock
+        as drivers in the same process must; ``kw`` as for the constructor."""
+        return cls(
+            cfg,
+            laser=emu.ports["laser"],
+            sonar=emu.ports["sonar"],
+            odometry=emu.ports["odometry"],
+            clock=emu.clock,
+            **kw,
+        )
+
     def _start_recording(self, world: str, meta: dict[str, Any]) -> None:
         assert self.record_dir is not None
         try:

@@ -47,12 +47,9 @@ def run_emulated(raw_dir, duration=2.5, faults=None, **ports_kw):
         keep_sent=True,
     )
     try:
-        ports = DevicePorts(
+        ports = DevicePorts.for_emulation(
             CFG,
-            laser=emu.ports["laser"],
-            sonar=emu.ports["sonar"],
-            odometry=emu.ports["odometry"],
-            clock=emu.clock,
+            emu,
             record_dir=raw_dir,
             world="corridor",
             meta={"seed": 3},

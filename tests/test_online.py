@@ -121,16 +121,7 @@ def start(faults=None, duration=DURATION, seed=SEED):
 
 
 def ports_for(emu, raw_dir, **kw) -> DevicePorts:
-    return DevicePorts(
-        CFG,
-        laser=emu.ports["laser"],
-        sonar=emu.ports["sonar"],
-        odometry=emu.ports["odometry"],
-        clock=emu.clock,
-        record_dir=raw_dir,
-        world="corridor",
-        **kw,
-    )
+    return DevicePorts.for_emulation(CFG, emu, record_dir=raw_dir, world="corridor", **kw)
 
 
 @pytest.fixture(scope="module")
