@@ -18,15 +18,17 @@ class Clock:
     drivers and the emulators of one process may share a clock, so that their times agree.
     """
 
-    def __init__(self, speed: float = 1.0) -> None:
+    def __init__(self, speed: float = 1.0, origin: float | None = None) -> None:
         if not speed > 0:
             raise ValueError(f"clock speed must be positive, got {speed}")
         self.speed = float(speed)
-        self._origin = time.monotonic()
+        # origin on time.monotonic(), which all processes of the machine share: a clock
+        # made with another clock's origin and speed reads the same in another process
+        self.origin = time.monotonic() if origin is None else float(origin)
 
     def now(self) -> float:
         """Current log time, s."""
-        return (time.monotonic() - self._origin) * self.speed
+        return (time.monotonic() - self.origin) * self.speed
 
     def wall(self, dt: float) -> float:
         """Wall-clock seconds that ``dt`` s of log time take."""

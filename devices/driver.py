@@ -37,6 +37,33 @@ def is_pseudo_terminal(port: str) -> bool:
     return os.path.realpath(port).startswith("/dev/pts/")
 
 
+class AttentiveTimer:
+    """Seconds a thread spent waiting for a device, counted in steps of at most ``cap`` s.
+
+    A driver thread waits in short reads (:data:`READ_SLICE`); between two :meth:`tick`
+    calls it may also have been stopped by the host (CPU load, another thread holding the
+    GIL), and that time says nothing about the device. Each step counts at most ``cap``, so
+    a device is declared silent, or a reply overdue, after that much *attentive* waiting:
+    the margin grows by itself when the host is behind. Not thread safe (one owner).
+    """
+
+    def __init__(self, cap: float = 4 * READ_SLICE) -> None:
+        self.cap = cap
+        self.reset()
+
+    def reset(self) -> None:
+        """Start counting from zero now."""
+        self.elapsed = 0.0
+        self._last = time.monotonic()
+
+    def tick(self) -> float:
+        """Add the time since the last tick (at most ``cap``); returns the total, s."""
+        now = time.monotonic()
+        self.elapsed += min(max(now - self._last, 0.0), self.cap)
+        self._last = now
+        return self.elapsed
+
+
 class DeviceError(Exception):
     """The device does not answer as its protocol says (no reply, refused command, wrong
     device). Port errors are ``serial.SerialException`` or ``OSError``."""
@@ -100,7 +127,7 @@ class SerialDevice:
         self.port_baud = 0
         self._ser: serial.Serial | None = None
         self._pending: list[Measurement] = []
-        self._last_data = time.monotonic()
+        self._quiet = AttentiveTimer()  # attentive waiting since the last measurement
 
     def recording_header(self) -> dict[str, Any]:
         """Header of this device's raw recording: what replay needs to decode it."""
@@ -137,7 +164,7 @@ class SerialDevice:
         if self.recorder is not None:
             self.recorder.marker(t, "open", baud=baud, port=self.port)
         self.receiver.reset(baud)
-        self._last_data = time.monotonic()
+        self._quiet.reset()
 
     def _set_port_baud(self, baud: int) -> None:
         """Change the host side's line rate."""
@@ -159,11 +186,12 @@ class SerialDevice:
         self._ser.write(data)
 
     def _read_items(self, timeout: float) -> list[Any]:
-        """Wait up to ``timeout`` s for bytes; record and decode what arrived."""
+        """Wait up to ``timeout`` s (attentive, see :class:`AttentiveTimer`) for bytes;
+        record and decode what arrived."""
         ser = self._ser
         if ser is None:
             raise DeviceError(f"{self.port}: not open")
-        deadline = time.monotonic() + timeout
+        waited = AttentiveTimer()
         while True:
             data = ser.read(1)
             if data:
@@ -171,7 +199,7 @@ class SerialDevice:
                 if waiting:
                     data += ser.read(waiting)
                 break
-            if time.monotonic() >= deadline:
+            if waited.tick() >= timeout:
                 return []
         t = self.clock.now()
         if self.recorder is not None:
@@ -203,8 +231,14 @@ class SerialDevice:
         if not out:
             out = [x for x in self._read_items(timeout) if _is_data(x)]
         if out:
-            self._last_data = time.monotonic()
+            self._quiet.reset()
+        else:
+            self._quiet.tick()
         return out
+
+    def data_arrived(self) -> None:
+        """A measurement came (restarts the count of :meth:`seconds_since_data`)."""
+        self._quiet.reset()
 
     def drain(self) -> list[Measurement]:
         """Measurements decoded but not yet returned by :meth:`read` (e.g. those that came
@@ -214,8 +248,10 @@ class SerialDevice:
         return out
 
     def seconds_since_data(self) -> float:
-        """Wall-clock seconds since the last measurement (or since the port was opened)."""
-        return time.monotonic() - self._last_data
+        """Seconds this driver has been waiting, attentively (:class:`AttentiveTimer`),
+        since the last measurement or the port's opening: the device's silence, not the
+        host's."""
+        return self._quiet.elapsed
 
     def counters(self) -> dict[str, int]:
         """All counters: link (opens, disconnects, timeouts, naks, retries) and receiver
@@ -239,8 +275,9 @@ def _is_data(item: Any) -> bool:
 class DeviceRunner:
     """Keeps one device running in a thread: opens it (retrying every ``reopen_interval``
     s), reads, and passes each measurement to ``sink``; on a port error, or when no
-    measurement came for ``silence_timeout`` s (a device that stopped answering), it closes
-    and reopens. ``stop()`` ends the thread and closes the port."""
+    measurement came for ``silence_timeout`` s of attentive waiting (a device that stopped
+    answering, not a host too busy to read it: :class:`AttentiveTimer`), it closes and
+    reopens. ``stop()`` ends the thread and closes the port."""
 
     def __init__(
         self,
@@ -256,6 +293,8 @@ class DeviceRunner:
         self.reopen_interval = reopen_interval
         self.silence_timeout = silence_timeout
         self.connected = threading.Event()
+        self.disconnect_times: list[float] = []  # log time of each loss of the device
+        self.down_since = time.monotonic()  # wall time it was last lost (or created)
         self.error: BaseException | None = None  # an exception from the sink, fatal
         self._stop = threading.Event()
         self._thread = threading.Thread(
@@ -263,6 +302,7 @@ class DeviceRunner:
         )
 
     def start(self) -> DeviceRunner:
+        self.down_since = time.monotonic()
         self._thread.start()
         return self
 
@@ -291,6 +331,8 @@ class DeviceRunner:
                     dev.last_error = f"{type(exc).__name__}: {exc}"
                     if self.connected.is_set():
                         dev.link.disconnects += 1
+                        self.disconnect_times.append(dev.clock.now())
+                        self.down_since = time.monotonic()
                         self.connected.clear()
                     for m in dev.drain():
                         self.sink(m)

@@ -22,6 +22,7 @@ import contextlib
 import heapq
 import math
 import os
+import queue
 import random
 import select
 import shutil
@@ -610,6 +611,11 @@ class Playback:
     emulator's host is streaming - so that nothing of the run is sent before the drivers
     listen. Actions that fall behind run at once (the run then lags real time rather than
     skipping data).
+
+    The schedule is computed ahead by a thread of its own (a simulation is costly: ray
+    casting, sonar echoes), and the playback starts once ``lead`` s of run time are ready
+    (inf: all of it), so that a busy host delays the start rather than the data: emulated
+    devices keep their time as real ones do.
     """
 
     def __init__(
@@ -619,20 +625,40 @@ class Playback:
         *,
         wait_for: Callable[[], bool] | None = None,
         wait_timeout: float = 30.0,
+        lead: float = 0.0,
         name: str = "emulator-playback",
     ) -> None:
         self.clock = clock
         self.schedule = schedule
         self.wait_for = wait_for
         self.wait_timeout = wait_timeout
+        self.lead = lead
         self.offset = math.nan
         self.done = threading.Event()
         self.started = threading.Event()
         self.error: BaseException | None = None
         self._stop = threading.Event()
+        self._ahead: queue.Queue[tuple[float, Callable[[float], Any]] | None] = queue.Queue()
+        self._computed = -math.inf  # run time of the last action computed
+        self._all_computed = threading.Event()
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._producer = threading.Thread(target=self._produce, name=f"{name}-ahead", daemon=True)
+
+    def _produce(self) -> None:
+        try:
+            for item in self.schedule:
+                if self._stop.is_set():
+                    return
+                self._ahead.put(item)
+                self._computed = item[0]
+        except BaseException as exc:
+            self.error = exc
+        finally:
+            self._ahead.put(None)
+            self._all_computed.set()
 
     def start(self) -> Playback:
+        self._producer.start()
         self._thread.start()
         return self
 
@@ -648,9 +674,13 @@ class Playback:
                 while not self.wait_for() and time.monotonic() < deadline:
                     if self._stop.wait(0.02):
                         return
+            while self._computed < self.lead and not self._all_computed.is_set():
+                if self._stop.wait(0.02):
+                    return
             self.offset = self.clock.now()
             self.started.set()
-            for t, action in self.schedule:
+            while (item := self._ahead.get()) is not None:
+                t, action = item
                 due = self.offset + t
                 if not self.clock.sleep_until(due, self._stop):
                     return

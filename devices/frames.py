@@ -17,12 +17,11 @@ from __future__ import annotations
 
 import binascii
 import struct
-import time
 from dataclasses import dataclass
 from typing import Any
 
 from devices.clock import Clock, DeviceTime
-from devices.driver import DeviceError, Measurement, SerialDevice
+from devices.driver import AttentiveTimer, DeviceError, Measurement, SerialDevice
 from devices.framing import StreamDecoder
 from devices.raw import RawRecorder
 
@@ -217,8 +216,8 @@ class FramedDevice(SerialDevice):
             if attempt:
                 self.link.retries += 1
             self._write(frame)
-            deadline = time.monotonic() + self.reply_timeout
-            while (left := deadline - time.monotonic()) > 0:
+            waited = AttentiveTimer()  # attentive: a busy host is not a late device
+            while (left := self.reply_timeout - waited.tick()) > 0:
                 reply = None
                 for item in self._read_items(min(left, 0.05)):  # the whole chunk: keep data
                     if isinstance(item, Measurement):
@@ -253,7 +252,7 @@ class FramedDevice(SerialDevice):
             self.close("open failed")
             raise
         self.link.opens += 1
-        self._last_data = time.monotonic()
+        self.data_arrived()
 
     def stop_stream(self) -> None:
         """Ask the device to stop sending data (STOP)."""

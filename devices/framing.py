@@ -43,6 +43,9 @@ class StreamDecoder:
         self._hlen = header_len
         self._buf = bytearray()
         self.stats = DecoderStats()
+        # after feed(): (index in its output, bytes of the chunk after the frame's last
+        # byte) per frame, so that a frame can be stamped with the time its end arrived
+        self.frame_tails: list[tuple[int, int]] = []
 
     # -- protocol hooks
 
@@ -86,12 +89,13 @@ class StreamDecoder:
         return n if self._valid(buf, i, n) else 0
 
     def feed(self, data: bytes | bytearray | memoryview) -> list[Any]:
-        """Add a chunk; return the frames it completed, in stream order. Never raises on any
-        byte content."""
+        """Add a chunk; return the frames it completed, in stream order (and set
+        :attr:`frame_tails`). Never raises on any byte content."""
         buf = self._buf
         buf += data
         self.stats.bytes_in += len(data)
         out: list[Any] = []
+        self.frame_tails = []
         sync = self._sync
         pos = 0
         while True:
@@ -113,6 +117,7 @@ class StreamDecoder:
             n = self._probe(buf, i)
             if n > 0:
                 out.append(self._item(bytes(buf[i : i + n])))
+                self.frame_tails.append((len(out) - 1, len(buf) - (i + n)))
                 self.stats.frames += 1
                 pos = i + n
                 continue

@@ -8,8 +8,9 @@ request the device sends one ACK (0x06) or NAK (0x15) byte. The line is 8E1 (11 
 
 Time registration (DESIGN 3.4): the host cannot see when the PLS measured a scan, only when
 the frame arrived. A frame is stamped with the log time of the read that completed it minus
-its transmission time at the current line rate (``len * 11 / baud``): the time its first byte
-left the scanner. The remaining delay, from the scan to the start of transmission, is not
+the transmission, at the current line rate (``len * 11 / baud``), of the bytes read after it
+in the same chunk and of the frame itself: the time its first byte left the scanner (at the
+latest). The remaining delay, from the scan to the start of transmission, is not
 observable; it is the configured ``laser.delay_min``..``delay_max`` that the front end takes
 off (its mean) and turns into covariance (``laser.sigma_time``).
 """
@@ -17,7 +18,6 @@ off (its mean) and turns into covariance (``laser.sigma_time``).
 from __future__ import annotations
 
 import struct
-import time
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -25,7 +25,7 @@ import numpy as np
 import serial
 
 from devices.clock import Clock
-from devices.driver import DeviceError, Measurement, SerialDevice
+from devices.driver import AttentiveTimer, DeviceError, Measurement, SerialDevice
 from devices.framing import StreamDecoder
 from devices.raw import RawRecorder
 
@@ -246,8 +246,9 @@ def encode_b0(
 @dataclass(frozen=True, eq=False)
 class LaserFrame(Measurement):
     """One scan: ``t`` = log time its first byte left the scanner (read time minus the
-    transmission time), ``t_host`` = log time of the read that completed it; ``ranges`` in
-    m, beam order of the scanner (first beam at -fov/2), NaN = no usable return."""
+    transmission time of it and of the bytes after it in the chunk), ``t_host`` = log time
+    of the read that completed it; ``ranges`` in m, beam order of the scanner (first beam
+    at -fov/2), NaN = no usable return."""
 
     t: float
     t_host: float
@@ -281,8 +282,14 @@ class SickReceiver:
         self.baud = baud
 
     def feed(self, t: float, data: bytes) -> list[Any]:
+        """Decode a chunk read at log time ``t``. A scan is stamped with the time its first
+        byte left the scanner: ``t`` less the transmission of the bytes that came after its
+        last one in this chunk (a host that read late finds several scans in one chunk: they
+        get their own times, not one) and less its own transmission."""
         out: list[Any] = []
-        for item in self.decoder.feed(data):
+        items = self.decoder.feed(data)
+        tails = dict(self.decoder.frame_tails)
+        for k, item in enumerate(items):
             if isinstance(item, Telegram) and item.command == REPLY_VALUES:
                 try:
                     values = parse_b0(item.payload)
@@ -290,8 +297,9 @@ class SickReceiver:
                     self.bad_frames += 1
                     out.append(item)
                     continue
+                end = t - transmission_time(tails.get(k, 0), self.baud)
                 tx = transmission_time(len(item.payload) + 6, self.baud)
-                out.append(LaserFrame(t - tx, t, values.ranges(), values))
+                out.append(LaserFrame(end - tx, t, values.ranges(), values))
                 self.scans += 1
             else:
                 out.append(item)
@@ -361,10 +369,10 @@ class SickPLS(SerialDevice):
             if attempt:
                 self.link.retries += 1
             self._write(telegram)
-            deadline = time.monotonic() + ack_timeout
+            waited, limit = AttentiveTimer(), ack_timeout  # attentive: a busy host is not late
             nak = False
             while not nak:
-                left = deadline - time.monotonic()
+                left = limit - waited.tick()
                 if left <= 0:
                     self.link.timeouts += 1
                     break
@@ -374,8 +382,8 @@ class SickPLS(SerialDevice):
                         if reply is not None or nak:
                             continue
                         if item.code == ACK:
-                            deadline = (
-                                time.monotonic()
+                            limit = (
+                                waited.elapsed
                                 + self.reply_timeout
                                 + transmission_time(MAX_PAYLOAD + 6, self.port_baud)
                             )
@@ -390,7 +398,7 @@ class SickPLS(SerialDevice):
                     elif reply is None and not nak and item.command in (want, REPLY_NOT_ACK):
                         reply = item
                 if isinstance(reply, LaserFrame):
-                    self._last_data = time.monotonic()
+                    self.data_arrived()
                     return reply
                 if reply is not None and reply.command == REPLY_NOT_ACK:
                     self.link.naks += 1
@@ -464,7 +472,7 @@ class SickPLS(SerialDevice):
             self.close("open failed")
             raise
         self.link.opens += 1
-        self._last_data = time.monotonic()
+        self.data_arrived()
 
     def read(self, timeout: float = 0.1) -> list[Measurement]:
         """Scans that arrived within ``timeout`` s (stream mode), or one requested scan."""

@@ -9,12 +9,16 @@ still queued and returns the results, which ``fgslam.slam.outputs.write_outputs`
 like ``fgslam run``'s.
 
 Order. The ports deliver events in arrival order: per device in time order, across devices
-interleaved, and a laser scan - stamped when its first byte left the scanner - arrives after
-the sonar and odometry of its transmission time (0.21 s at 38400 baud, 0.84 s at 9600),
-plus the threads' scheduling jitter. The front end needs time order, so the pipeline puts
-events back in order in a reorder buffer of ``reorder_window`` s (log time, 2 s by default:
-more than the transmission at 9600 baud plus jitter at 16x). This costs no latency that
-matters: the front end holds every scan for its 6 s sonar window anyway.
+interleaved as the host's threads happened to run (a laser scan, stamped when its first byte
+left the scanner, arrives after the sonar and odometry of its transmission time, 0.21 s at
+38400 baud; a starved driver thread delivers seconds of events at once). The events are
+merged by device time (:class:`fgslam.ordering.SourceMerger`, the merge a replay of the
+recording applies), so that what the SLAM pipeline sees does not depend on the host's speed
+or load: a host that cannot keep up lags (reported), it never drops or reorders data. Wall
+time only decides when a device is silent (disconnected, or its driver waited
+``silent_after`` s without data, counted in attentive time), and then the merge goes on
+without it; what such a device delivers later is put back in order by the pipeline's reorder
+buffer (``reorder_window`` s of log time) or, beyond it, counted.
 """
 
 from __future__ import annotations
@@ -32,23 +36,28 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from devices.clock import Clock
 from devices.emulators import Faults
 from fgslam.config import RobotConfig
+from fgslam.device_process import DeviceProcess
 from fgslam.errors import UserError
 from fgslam.events import Event, SonarReading
+from fgslam.ordering import SourceMerger
 from fgslam.ports import LASER, ODOMETRY, DevicePorts, sonar_name, start_emulators
 from fgslam.slam.runner import SlamPipeline, SlamResult
 
-REORDER_WINDOW = 2.0  # s of log time; see the module docstring
+REORDER_WINDOW = 2.0  # s of log time: what is left out of order after the merge (late events)
 STATUS_INTERVAL = 0.25  # wall s between status updates
+SILENT_AFTER = 1.0  # s of a driver's attentive waiting without data: the merge goes on without it
 
 
 @dataclass
 class OnlineResult:
     """What :func:`run_online` did: the SLAM result, why it stopped (``interrupted`` or
     ``end of data``), events taken per device, the largest lag of an event behind the
-    clock when it was processed (log s), and the ports' final status."""
+    clock when it was processed (log s), events that came after the merge had gone past
+    them (``late``: the first events of a device after a silence, e.g. at the start; the
+    pipeline's reorder buffer puts them back in order, or counts them as out of order
+    beyond its window), silences declared per device, and the ports' final status."""
 
     result: SlamResult
     reason: str
@@ -56,6 +65,8 @@ class OnlineResult:
     max_lag: float = 0.0
     busy_seconds: float = 0.0
     wall_seconds: float = 0.0
+    late: int = 0
+    silences: Counter = field(default_factory=Counter)
     status: dict[str, dict[str, Any]] = field(default_factory=dict)
 
 
@@ -68,7 +79,7 @@ def source(ev: Event) -> str:
 
 
 def run_online(
-    ports: DevicePorts,
+    ports: DevicePorts | DeviceProcess,
     cfg: RobotConfig,
     *,
     backend: str = "isam2",
@@ -78,53 +89,76 @@ def run_online(
     on_status: Callable[[str], None] | None = None,
     status_interval: float = STATUS_INTERVAL,
     reorder_window: float = REORDER_WINDOW,
+    silent_after: float = SILENT_AFTER,
 ) -> OnlineResult:
     """Run the front end and ``backend`` on the events of started ``ports`` as they come.
 
-    Stops when ``stop`` is set, or when no event came for ``idle_timeout`` wall s after the
-    first one; ``on_status`` receives a one-line status (:func:`status_line`) at most every
-    ``status_interval`` s. A device that disconnects is reopened by its driver thread while
-    the others go on. Raises RuntimeError if a device thread failed (a bug)."""
+    Events are merged by device time (:class:`fgslam.ordering.SourceMerger`): an event goes
+    on once every device has delivered one as late, so the order, and the map, do not depend
+    on how fast the host is. A device is not waited for while it is disconnected or its
+    driver has waited ``silent_after`` s (attentive time) without data, and only when every
+    delivered event has been taken: a host that is behind lags, it does not skip a device.
+
+    Stops when ``stop`` is set, or at the end of the data: every device silent for
+    ``idle_timeout`` s (attentive) after data has been flowing, and nothing left to take.
+    ``on_status`` receives a one-line status (:func:`status_line`) at most every
+    ``status_interval`` wall s. A device that disconnects is reopened by its driver thread
+    while the others go on. Raises RuntimeError if a device thread failed (a bug)."""
     stop = stop or threading.Event()
     pipe = SlamPipeline(cfg, [backend], sensors, reorder_window=reorder_window, count_idle=False)
+    merger = SourceMerger(ports.names)
     clock = ports.clock
     counts: Counter = Counter()
+    silences: Counter = Counter()
     max_lag = lag = 0.0
     t_wall = time.monotonic()
-    last_data: float | None = None
+    flowing = False
     next_status = t_wall
     reason = "interrupted"
 
-    def take(ev: Event) -> None:
+    def take(evs: list[Event]) -> None:
         nonlocal lag, max_lag
-        counts[source(ev)] += 1
-        lag = clock.now() - ev.t
-        max_lag = max(max_lag, lag)
-        pipe.add(ev)
+        for ev in evs:
+            lag = clock.now() - ev.t
+            max_lag = max(max_lag, lag)
+            pipe.add(ev)
 
     while not stop.is_set():
-        ev = ports.get(timeout=0.05)
-        now = time.monotonic()
-        if ev is not None:
-            take(ev)
-            last_data = now
-        elif last_data is not None and now - last_data > idle_timeout:
-            reason = "end of data"
-            break
+        item = ports.poll(0.05)
+        if isinstance(item, dict):  # a silence snapshot: everything delivered before is taken
+            for n, q in item.items():
+                if q > silent_after and n not in merger.silent:
+                    silences[n] += 1
+                    take(merger.set_silent(n))
+                elif q <= silent_after and n in merger.silent:
+                    take(merger.set_silent(n, False))  # streaming again: wait for it
+            if flowing and min(item.values()) > idle_timeout:
+                reason = "end of data"
+                break
+        elif item is not None:
+            name = source(item)
+            counts[name] += 1
+            flowing = True
+            take(merger.push(name, item))
         errors = ports.errors()
         if errors:
             raise RuntimeError(f"a device thread failed: {errors[0]!r}") from errors[0]
+        now = time.monotonic()
         if on_status is not None and now >= next_status:
             next_status = now + status_interval
-            on_status(status_line(pipe, ports.status(), lag, last_data is None))
+            on_status(status_line(pipe, ports.status(), lag, not flowing))
     # what has arrived is processed, then the scans still waiting for their sonar window
-    while (ev := ports.get(timeout=0)) is not None:
-        take(ev)
+    for ev in ports.drain():
+        counts[source(ev)] += 1
+        take(merger.push(source(ev), ev))
+    take(merger.flush())
     res = pipe.finish()[0]
     res.stats.update({f"events_{k}": v for k, v in counts.items()})
+    if merger.late:
+        res.stats["events_late"] = merger.late
     status = ports.status()
     if on_status is not None:
-        on_status(status_line(pipe, status, lag, last_data is None))
+        on_status(status_line(pipe, status, lag, not flowing))
     return OnlineResult(
         result=res,
         reason=reason,
@@ -132,13 +166,17 @@ def run_online(
         max_lag=max_lag,
         busy_seconds=pipe.busy_seconds,
         wall_seconds=time.monotonic() - t_wall,
+        late=merger.late,
+        silences=silences,
         status=status,
     )
 
 
 def device_summary(name: str, s: dict[str, Any]) -> str:
-    """``name ok`` / ``name DOWN``, with its non-zero fault counters."""
-    parts = [f"{name} {'ok' if s.get('connected') else 'DOWN'}"]
+    """``name ok`` / ``name DOWN`` / ``name finished`` (closed at the end of the run), with
+    its non-zero fault counters."""
+    state = "ok" if s.get("connected") else "finished" if s.get("finished") else "DOWN"
+    parts = [f"{name} {state}"]
     labels = (
         ("disconnects", "disc"),
         ("crc_errors", "crc"),
@@ -354,9 +392,10 @@ def open_ports(
     speed: float = 1.0,
     record: str | None = None,
     meta: dict[str, Any] | None = None,
-) -> DevicePorts:
-    """:class:`DevicePorts` for the ``fgslam online`` options, with clear errors for ports
-    that do not exist."""
+) -> DeviceProcess:
+    """The devices for the ``fgslam online`` options, driven in a process of their own
+    (:class:`fgslam.device_process.DeviceProcess`: SLAM's load cannot delay their reads
+    and timestamps), with clear errors for ports that do not exist."""
     if not speed > 0:
         raise UserError(f"--speed must be positive, got {speed}")
     given = [("--laser", laser), *(("--sonar", s) for s in sonar), ("--odom", odometry)]
@@ -365,12 +404,17 @@ def open_ports(
             raise UserError(f"{opt} {port}: no such port")
     if not any(p for _, p in given):
         raise UserError("no device port given (--laser, --sonar, --odom)")
-    return DevicePorts(
+    if len(sonar) > len(cfg.sonar.arrays):
+        raise UserError(
+            f"{len(sonar)} sonar ports given, the configuration has "
+            f"{len(cfg.sonar.arrays)} sonar arrays"
+        )
+    return DeviceProcess(
         cfg,
         laser=laser,
         sonar=sonar,
         odometry=odometry,
-        clock=Clock(speed),
+        speed=speed,
         record_dir=record,
         meta=meta,
     )
@@ -459,10 +503,13 @@ def online_main(
             if stop.is_set():
                 break
             if time.monotonic() > deadline:
+                status = ports.status()
                 bad = [
-                    f"{n} ({s['last_error'] or 'no answer'})"
-                    for n, s in ports.status().items()
-                    if not s["connected"]
+                    f"{n} ({status[n]['last_error'] or 'no answer'})"
+                    if n in status
+                    else f"{n} (no answer)"
+                    for n in ports.names
+                    if not status.get(n, {}).get("connected")
                 ]
                 raise UserError(f"no answer after {connect_timeout:g} s from {'; '.join(bad)}")
         try:

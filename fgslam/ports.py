@@ -45,13 +45,14 @@ from devices.emulators import (
 )
 from devices.odometry import OdometryBoard, OdometryFrame
 from devices.raw import RawFormatError, RawRecorder
-from devices.replay import ReplayFile, replay_dir
+from devices.replay import ReplayFile
 from devices.sick import FIRST_SPECIAL, LaserFrame, SickPLS
 from devices.sonar import SonarArray, SonarFrame
 from fgslam.config import RobotConfig, from_dict, load_config
 from fgslam.errors import UserError
 from fgslam.events import Event, LaserScan, OdometryEvent, SonarEcho, SonarReading, TruthPose
 from fgslam.logfile import LogWriter
+from fgslam.ordering import merge_sources
 from fgslam.sim.sensors import SimParams
 from fgslam.sim.simulate import Run, events, plan_run
 from fgslam.sim.world import World
@@ -60,6 +61,7 @@ SESSION_FILE = "session.json"
 SESSION_FORMAT = "fgslam-raw-session"
 SESSION_VERSION = 1
 LASER, ODOMETRY = "laser", "odometry"
+SNAPSHOT_INTERVAL = 0.1  # wall s: silence snapshots at least this often (DevicePorts.poll)
 
 
 def sonar_name(i: int) -> str:
@@ -177,6 +179,7 @@ class DevicePorts:
             for name, dev in self.devices.items()
         }
         self._started = False
+        self._next_snapshot = 0.0
 
     @classmethod
     def for_emulation(cls, cfg: RobotConfig, emu: Emulation, **kw: Any) -> DevicePorts:
@@ -246,6 +249,32 @@ class DevicePorts:
         except queue.Empty:
             return None
 
+    def poll(self, timeout: float = 0.05) -> Event | dict[str, float]:
+        """The next event (waiting up to ``timeout`` s), or - when none is waiting, and at
+        least every :data:`SNAPSHOT_INTERVAL` s - a *silence snapshot*: ``{device:
+        silence(device)}`` taken with the queue empty, so that every event delivered before
+        it has been returned before it."""
+        now = time.monotonic()
+        if now >= self._next_snapshot and self._queue.empty():
+            self._next_snapshot = now + SNAPSHOT_INTERVAL
+            return self.silences()
+        ev = self.get(timeout)
+        if ev is None:
+            self._next_snapshot = time.monotonic() + SNAPSHOT_INTERVAL
+            return self.silences()
+        return ev
+
+    def drain(self) -> list[Event]:
+        """The events delivered and not yet taken, without waiting."""
+        out = []
+        while (ev := self.get(timeout=0)) is not None:
+            out.append(ev)
+        return out
+
+    def silences(self) -> dict[str, float]:
+        """:meth:`silence` of every device."""
+        return {n: self.silence(n) for n in self.devices}
+
     def events(self, idle_timeout: float | None = None) -> Iterator[Event]:
         """Events as they arrive; ends after ``idle_timeout`` s without any (None: never)."""
         while True:
@@ -254,16 +283,36 @@ class DevicePorts:
                 return
             yield ev
 
+    @property
+    def names(self) -> list[str]:
+        """The devices' names (laser, sonar<i>, odometry), the sources of the events."""
+        return list(self.devices)
+
+    def silence(self, name: str) -> float:
+        """How long device ``name`` has been silent, s: while connected, its driver's
+        attentive waiting since the last measurement (:class:`devices.driver.AttentiveTimer`:
+        time the host was too busy to read does not count); while not, the wall time since
+        it was lost (or since the start, for one that never answered)."""
+        runner = self._runners[name]
+        if not runner.connected.is_set():
+            return time.monotonic() - runner.down_since
+        return self.devices[name].seconds_since_data()
+
+    def backlog(self) -> int:
+        """Events delivered by the drivers and not yet taken with :meth:`get`."""
+        return self._queue.qsize()
+
     def status(self) -> dict[str, dict[str, Any]]:
         """Per device: connected, counters (opens, disconnects, timeouts, naks, retries,
         bytes_in, frames, crc_errors, discarded, dropped_frames, ...), received and rejected
-        measurements, last error."""
+        measurements, last error, log times of the disconnects."""
         out = {}
         for name, dev in self.devices.items():
             d: dict[str, Any] = {"connected": self._runners[name].connected.is_set()}
             d.update(dev.counters())
             d.update(received=self.received[name], rejected=self.rejected[name])
             d["last_error"] = dev.last_error
+            d["disconnect_times"] = list(self._runners[name].disconnect_times)
             out[name] = d
         return out
 
@@ -375,6 +424,7 @@ def start_emulators(
     wait_timeout: float = 60.0,
     keep_sent: bool = False,
     clock: Clock | None = None,
+    lead: float = 10.0,
 ) -> Emulation:
     """Emulate the robot's devices on pseudo-terminals, fed by a simulated run of ``world``
     (``fgslam.sim``: the planned run and the sensor models) at ``speed`` times real time.
@@ -384,6 +434,9 @@ def start_emulators(
     for every device (each gets its own seed) or a dict by device name. With
     ``wait_for_hosts`` the run starts once every device's host is streaming (at most
     ``wait_timeout`` wall s). Drivers in the same process should share ``Emulation.clock``.
+    The simulation runs ahead of the playback in a thread of its own, and the playback
+    starts once ``lead`` s of the run are computed (inf: the whole run), so that the devices
+    keep their times on a busy host (:class:`devices.emulators.Playback`).
     """
     clock = clock or Clock(speed)
     run = plan_run(world, cfg, seed, params, duration)
@@ -438,6 +491,7 @@ def start_emulators(
         schedule,
         wait_for=emulation.ready if wait_for_hosts else None,
         wait_timeout=wait_timeout,
+        lead=lead,
     )
     for e in emus:
         e.start()
@@ -537,20 +591,31 @@ def _raw_names(raw_dir: str | Path) -> list[str]:
 def replay(
     raw_dir: str | Path, cfg: RobotConfig | None = None, result: ReplayResult | None = None
 ) -> Iterator[Event]:
-    """The fgslam events of a raw directory, decoded by the drivers' receivers and merged in
-    the order of the reads that completed them: the same every time. ``cfg`` defaults to
-    the recorded configuration (else the default one). ``result``, if given, is filled in
-    as events go (counts, and per file its counters and damage at the end)."""
+    """The fgslam events of a raw directory, decoded by the drivers' receivers and merged by
+    device time (:func:`fgslam.ordering.merge_sources`, the merge the online run applies):
+    the same every time, and the same order as the online run that made the recording.
+    ``cfg`` defaults to the recorded configuration (else the default one). ``result``, if
+    given, is filled in as events go (counts, and per file its counters and damage at the
+    end)."""
     if cfg is None:
         cfg = session_config(raw_dir) or load_config()
     result = result if result is not None else ReplayResult()
-    opened: dict[str, ReplayFile] = {}
+    names = _raw_names(raw_dir)
     try:
-        for _name, m in replay_dir(raw_dir, _raw_names(raw_dir), opened):
+        opened = {name: ReplayFile(Path(raw_dir) / f"{name}.raw") for name in names}
+    except RawFormatError as exc:
+        raise UserError(str(exc)) from None
+
+    def decoded(rf: ReplayFile) -> Iterator[Event]:
+        for m in rf:
             ev = to_event(m, cfg)
             if ev is None:
                 result.rejected += 1
-                continue
+            else:
+                yield ev
+
+    try:
+        for ev in merge_sources({name: decoded(rf) for name, rf in opened.items()}):
             result.events += 1
             kind = type(ev).__name__
             result.by_kind[kind] = result.by_kind.get(kind, 0) + 1

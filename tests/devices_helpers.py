@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
 import itertools
+import os
+import subprocess
+import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 
 def chunked(data: bytes, cuts: list[int]) -> list[bytes]:
@@ -22,3 +26,21 @@ def wait_until(cond: Callable[[], bool], timeout: float = 20.0, step: float = 0.
             return False
         time.sleep(step)
     return True
+
+
+@contextlib.contextmanager
+def cpu_hogs(per_core: int = 2) -> Iterator[int]:
+    """Busy processes loading every core (``per_core`` each) while the block runs: a loaded
+    machine, started and stopped by the test. Yields their number."""
+    n = per_core * (os.cpu_count() or 1)
+    procs = [
+        subprocess.Popen([sys.executable, "-c", "while True: pass"], stdin=subprocess.DEVNULL)
+        for _ in range(n)
+    ]
+    try:
+        yield n
+    finally:
+        for p in procs:
+            p.kill()
+        for p in procs:
+            p.wait()

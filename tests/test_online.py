@@ -2,8 +2,9 @@
 :func:`fgslam.online.run_online` compared with ``fgslam run`` on the log of the same run;
 Ctrl-C, a device disconnect, the ``fgslam emulate`` / ``fgslam online`` commands.
 
-Emulated runs are short (25-40 s of the corridor run) at 6x real time; every wait is
-generous and the assertions are on content, not on timing."""
+Emulated runs are short (25-40 s of the corridor run) at 3x real time, one on a machine
+loaded by busy processes, one faster than the host can follow; every wait is generous and
+the assertions are on content, not on timing (issue 17)."""
 
 from __future__ import annotations
 
@@ -18,22 +19,24 @@ from collections import Counter
 
 import numpy as np
 import pytest
-from devices_helpers import wait_until
+from devices_helpers import cpu_hogs, wait_until
 from slam_scenes import room_events
 
 from devices.emulators import Faults
+from devices.raw import RawReader
 from fgslam.cli import main
 from fgslam.config import load_config
-from fgslam.events import LaserScan, OdometryEvent, TruthPose
+from fgslam.device_process import DeviceProcess, EmulationSpec
+from fgslam.events import LaserScan, TruthPose
 from fgslam.logfile import LogReader
 from fgslam.online import online_main, run_online, source
-from fgslam.ports import DevicePorts, replay, replay_to_log, start_emulators
+from fgslam.ports import replay, replay_to_log, start_emulators
 from fgslam.sim import simulate_to_log
 from fgslam.sim.world import load_world
-from fgslam.slam.runner import ReorderBuffer, SlamPipeline, run_backends, run_slam
+from fgslam.slam.runner import SlamPipeline, run_backends, run_slam
 
 CFG = load_config()
-SPEED = 6.0
+SPEED = 3.0
 SEED, DURATION = 1, 40.0
 FGSLAM = [sys.executable, "-m", "fgslam.cli"]
 
@@ -97,47 +100,36 @@ def test_reorder_buffer_puts_late_events_back_within_its_window():
     dropped = pipe.finish()[0].stats["events_out_of_order"]
     assert dropped >= 0.9 * sum(isinstance(e, LaserScan) for e in evs)
 
-    buf = ReorderBuffer(1.0)
-    out = []
-    for t in (0.0, 0.5, 0.2, 1.3, 0.4, 3.0, 0.3):
-        out += buf.push(OdometryEvent(t, 0, 0))
-    out += buf.flush()
-    assert [e.t for e in out] == [0.0, 0.2, 0.4, 0.5, 1.3, 3.0]  # 0.3 came after 1.3 left
-    assert buf.dropped == 1 and buf.reordered == 2
-
 
 # ------------------------------------------------------------------ end to end
+# The emulators and the drivers run in a device process (fgslam.device_process), SLAM in
+# this one, as ``fgslam online`` runs them: SLAM's load cannot delay the drivers' reads.
 
 
-def start(faults=None, duration=DURATION, seed=SEED):
-    return start_emulators(
-        CFG,
-        load_world("corridor"),
-        seed=seed,
-        speed=SPEED,
-        duration=duration,
-        faults=faults,
-    )
-
-
-def ports_for(emu, raw_dir, **kw) -> DevicePorts:
-    return DevicePorts.for_emulation(CFG, emu, record_dir=raw_dir, world="corridor", **kw)
+def online(raw, *, speed=SPEED, duration=DURATION, seed=SEED, faults=None, **kw):
+    """An emulated run of the corridor, SLAM online with iSAM2 until the end of the data;
+    returns the run and the emulation's final state (stats per device, start time)."""
+    spec = EmulationSpec("corridor", seed=seed, duration=duration, faults=faults)
+    dev = DeviceProcess(CFG, speed=speed, record_dir=raw, world="corridor", emulation=spec, **kw)
+    with dev:
+        run = run_online(dev, CFG, idle_timeout=1.5, on_status=kw.pop("on_status", None))
+    run.status = dev.status()  # final counters
+    assert dev.emulation["done"] and dev.emulation["error"] is None, dev.emulation
+    return run, dev.emulation
 
 
 @pytest.fixture(scope="module")
 def online_run(tmp_path_factory):
-    """40 s of the corridor run (seed 1) emulated at 6x, SLAM online with iSAM2; ends at
+    """40 s of the corridor run (seed 1) emulated at 3x, SLAM online with iSAM2; ends at
     the end of the data (the emulators stay up, silent)."""
     raw = tmp_path_factory.mktemp("online") / "raw"
     lines: list[str] = []
-    emu = start()
-    try:
-        with ports_for(emu, raw) as ports:
-            run = run_online(ports, CFG, idle_timeout=1.5, on_status=lines.append)
-        assert emu.done and emu.playback.error is None
-        return run, emu.stats(), raw, lines
-    finally:
-        emu.stop()
+    spec = EmulationSpec("corridor", seed=SEED, duration=DURATION)
+    dev = DeviceProcess(CFG, speed=SPEED, record_dir=raw, world="corridor", emulation=spec)
+    with dev:
+        run = run_online(dev, CFG, idle_timeout=1.5, on_status=lines.append)
+    run.status = dev.status()
+    return run, dev.emulation, raw, lines
 
 
 def landmark_points(res) -> dict[str, np.ndarray]:
@@ -155,39 +147,52 @@ def landmark_points(res) -> dict[str, np.ndarray]:
     return {k: np.array(v).reshape(-1, 2) for k, v in out.items()}
 
 
-def test_online_run_keeps_up_and_reports_status(online_run):
-    run, emu_stats, _, lines = online_run
-    assert run.reason == "end of data"
-    for name, s in run.status.items():  # every frame sent arrived, intact
-        assert s["connected"] and s["opens"] == 1 and s["disconnects"] == 0, name
+def assert_everything_arrived(run, emulation, duration) -> None:
+    """Every frame sent arrived intact and was processed; a device was lost only after the
+    end of the data (silent, while the host was still working), never during it."""
+    end = emulation["start_time"] + duration
+    for name, s in run.status.items():
         assert s["crc_errors"] == s.get("dropped_frames", 0) == s["discarded"] == 0, name
-        assert run.events[name] == emu_stats[name]["frames_sent"] > 0, name
+        assert run.events[name] == emulation["stats"][name]["frames_sent"] > 0, name
+        assert s["opens"] == 1 + s["disconnects"], name
+        assert all(t > end for t in s["disconnect_times"]), (name, s["disconnect_times"], end)
+        assert s["finished"] or s["disconnects"], name
+    # a device's first event after a silence (the start) may come after the merge went on:
+    # the pipeline's reorder buffer puts it back; nothing is dropped
+    assert run.late <= 4 and "events_out_of_order" not in run.result.stats
     assert run.result.stats["events_laser"] == run.events["laser"]
     assert len(run.result.times) == run.events["laser"]  # one keyframe per scan
-    assert any("lines" in ln and "laser ok" in ln and "kf " in ln for ln in lines)
-    assert run.busy_seconds < run.wall_seconds
 
 
-def test_online_equals_fgslam_run_on_the_replayed_recording(online_run, tmp_path):
+def assert_equals_replay(run, raw, tmp_path) -> None:
     """The recording replays into exactly the events the online run took (the same
-    decoders, the same stamps), and both put them in time order through the same reorder
-    buffer: ``fgslam run`` on the replayed log gives the same map and trajectory, to the
-    last bit."""
-    run, _, raw, _ = online_run
+    decoders, the same stamps) in the same merge by device time: ``fgslam run`` on the
+    replayed log gives the same map and trajectory, to the last bit."""
     log = tmp_path / "replayed.log.gz"
     rep = replay_to_log(raw, log)
     assert rep.events == sum(run.events.values())
     with LogReader(log) as reader:
         ref = run_slam(reader, CFG, "isam2", "fused")
-    assert ref.stats["events_reordered"] > 0  # laser scans come after their first byte's time
     assert "events_out_of_order" not in ref.stats
     _same_results(ref, run.result)
+
+
+def test_online_run_keeps_up_and_reports_status(online_run):
+    run, emulation, _, lines = online_run
+    assert run.reason == "end of data"
+    assert_everything_arrived(run, emulation, DURATION)
+    assert any("lines" in ln and "laser ok" in ln and "kf " in ln for ln in lines)
+
+
+def test_online_equals_fgslam_run_on_the_replayed_recording(online_run, tmp_path):
+    run, _, raw, _ = online_run
+    assert_equals_replay(run, raw, tmp_path)
 
 
 def test_online_matches_fgslam_run_on_the_simulated_log(online_run, tmp_path):
     """``fgslam run`` on the simulator's log of the same seed and duration. Not equal: on
     the host every laser stamp carries the read latency of the pty and the driver thread
-    (a few ms wall, x6 in log time), sonar and odometry times come from the device-clock
+    (a few ms wall, x3 in log time), sonar and odometry times come from the device-clock
     filter, sonar readings are quantised to 1 mm / 1e-4 rad, and log time starts elsewhere.
     Both runs start at the origin (the truth is left out of the log). Observed over 40 s
     (seeds 1 and 5): final pose 1-6 mm and 0.03 deg apart; the same line and point counts,
@@ -216,6 +221,29 @@ def test_online_matches_fgslam_run_on_the_simulated_log(online_run, tmp_path):
     assert np.median(dists) < 0.02 and np.mean(np.array(dists) < 0.10) >= 0.8, dists
 
 
+def test_online_equals_replay_with_every_core_loaded(tmp_path):
+    """Busy processes on every core (twice as many as cores) while the devices stream at
+    6x: the host falls behind, and the map is still the replay's, bit for bit, with every
+    frame processed and no device declared lost during the run."""
+    raw = tmp_path / "raw"
+    with cpu_hogs(per_core=2):
+        run, emulation = online(raw, speed=6.0, duration=25.0, seed=2)
+    assert run.reason == "end of data"
+    assert_everything_arrived(run, emulation, 25.0)
+    assert_equals_replay(run, raw, tmp_path)
+
+
+def test_online_lags_then_catches_up_when_the_host_cannot_follow(tmp_path):
+    """The devices stream at 40x, faster than SLAM can follow on any machine this runs on:
+    the run lags (reported as ``max_lag``), every event is processed at the end, and the
+    result is the replay's."""
+    raw = tmp_path / "raw"
+    run, emulation = online(raw, speed=40.0, duration=30.0, seed=3)
+    assert run.reason == "end of data" and run.max_lag > 0
+    assert_everything_arrived(run, emulation, 30.0)
+    assert_equals_replay(run, raw, tmp_path)
+
+
 def test_disconnect_mid_run_reconnects_and_records_everything(tmp_path):
     """The odometry cable is pulled at 8 s for 1 s and the sonar 0 line is noisy: the run
     completes, the status shows the reconnect, and the recording holds every frame the
@@ -225,38 +253,40 @@ def test_disconnect_mid_run_reconnects_and_records_everything(tmp_path):
         "sonar0": Faults(seed=4, noise=0.2),
     }
     raw = tmp_path / "raw"
-    emu = start(faults, duration=25.0, seed=2)
-    try:
-        with ports_for(emu, raw, reopen_interval=0.1) as ports:
-            run = run_online(ports, CFG, idle_timeout=1.5)
-        sent = emu.stats()
-    finally:
-        emu.stop()
+    run, emulation = online(raw, duration=25.0, seed=2, faults=faults, reopen_interval=0.1)
+    sent = emulation["stats"]
     st = run.status
     assert run.reason == "end of data" and len(run.result.times) > 50
     assert st["odometry"]["disconnects"] >= 1 and st["odometry"]["opens"] >= 2
-    assert st["odometry"]["connected"]
     assert st["sonar0"]["discarded"] > 0 and st["laser"]["disconnects"] == 0
     replayed = Counter(source(e) for e in replay(raw))
     assert replayed == run.events
     for name in ("laser", "sonar0", "sonar1"):
         assert run.events[name] == sent[name]["frames_sent"], name
-    # lost on the line, not on the host: frames in the pty when the cable was pulled, and
-    # those the emulator wrote into the new pty before the driver reopened it (0.1 s wall
-    # = 0.6 s of the run) and flushed its input
-    assert 0 <= sent["odometry"]["frames_sent"] - run.events["odometry"] <= 100
     assert sent["odometry"]["frames_lost"] > 50  # ~1 s at 100 Hz not sent while unplugged
+    # lost on the line, not on the host: frames in the pty when the cable was pulled, and
+    # those the emulator wrote into the new pty before the driver reopened it and flushed
+    # its input (the recording's open marker says when: however late a loaded host was)
+    opens = [
+        r.t
+        for r in RawReader(raw / "odometry.raw")
+        if r.tag == "M" and r.marker.get("event") == "open"
+    ]
+    replug = emulation["start_time"] + 9.0
+    frames_before_reopen = (opens[-1] - replug) / CFG.odometry.sample_period
+    lost = sent["odometry"]["frames_sent"] - run.events["odometry"]
+    assert 0 <= lost <= 40 + frames_before_reopen, (lost, frames_before_reopen)
 
 
 def test_stop_writes_the_outputs(tmp_path):
     """What Ctrl-C does in ``fgslam online`` (the stop event), on its own clock as in a
     separate process: the run stops mid-way and the outputs of ``fgslam run`` are written."""
-    emu = start(duration=60.0, seed=3)
+    emu = start_emulators(CFG, load_world("corridor"), seed=3, speed=SPEED, duration=60.0)
     stop = threading.Event()
 
-    def stopper() -> None:
+    def stopper() -> None:  # after 12 s of the run (60 scans), however fast that went
         emu.started.wait(60)
-        while emu.clock.now() - emu.start_time < 12.0 and not emu.done:
+        while emu.laser.stats.frames_sent < 60 and not emu.done:
             time.sleep(0.05)
         stop.set()
 

@@ -12,7 +12,6 @@ in order.
 
 from __future__ import annotations
 
-import heapq
 import math
 import time
 from collections import Counter, deque
@@ -26,6 +25,7 @@ from factors.odometry import OdometryParams, integrate_poses, preintegrate
 from fgslam.config import RobotConfig
 from fgslam.events import Event, OdometryEvent, TruthPose
 from fgslam.frontend.pipeline import FrontEnd
+from fgslam.ordering import ReorderBuffer
 from fgslam.slam import models
 from fgslam.slam.backend import Backend
 from fgslam.slam.ekf import EkfBackend
@@ -120,60 +120,6 @@ def run_slam(
 ) -> SlamResult:
     """Run SLAM with one backend over an event stream; see :func:`run_backends`."""
     return run_backends(events, cfg, [backend], sensors, progress, map_params)[0]
-
-
-class ReorderBuffer:
-    """Puts events back into time order within a bounded delay.
-
-    Sources interleave: a laser scan is stamped when its first byte left the scanner, so it
-    reaches the host (and a log written in arrival order, like a replayed raw recording)
-    after the sonar readings and odometry samples of its transmission time (0.21 s at 38400
-    baud, 0.84 s at 9600); device threads add the host's scheduling jitter. An event is held
-    until one ``window`` s (log time) newer has been seen, and events leave in order of
-    time (ties: arrival order), so an input already in order leaves unchanged. An event
-    older than one already released cannot be put back: it is dropped (``dropped``).
-    ``window`` 0 releases every event at once (strict order: late events are dropped).
-    """
-
-    def __init__(self, window: float = 1.0) -> None:
-        if not window >= 0:
-            raise ValueError(f"reorder window must be >= 0, got {window}")
-        self.window = float(window)
-        self.newest = -math.inf  # latest time seen
-        self.released = -math.inf  # time of the last event released
-        self.dropped = 0  # events too late to put back
-        self.reordered = 0  # events that came after a later one and were put back
-        self._heap: list[tuple[float, int, Event]] = []
-        self._n = 0
-
-    def __len__(self) -> int:
-        return len(self._heap)
-
-    def push(self, ev: Event) -> list[Event]:
-        """Take one event; returns the events now due, in time order."""
-        if ev.t < self.released:
-            self.dropped += 1
-            return []
-        if ev.t < self.newest:
-            self.reordered += 1
-        else:
-            self.newest = ev.t
-        self._n += 1
-        heapq.heappush(self._heap, (ev.t, self._n, ev))
-        return self._pop(self.newest - self.window)
-
-    def flush(self) -> list[Event]:
-        """Every event still held, in time order (the end of the stream)."""
-        return self._pop(math.inf)
-
-    def _pop(self, until: float) -> list[Event]:
-        out = []
-        heap = self._heap
-        while heap and heap[0][0] <= until:
-            out.append(heapq.heappop(heap)[2])
-        if out:
-            self.released = out[-1].t
-        return out
 
 
 class SlamPipeline:
