@@ -54,7 +54,9 @@ SILENT_AFTER = 1.0  # s of a driver's attentive waiting without data: the merge 
 class OnlineResult:
     """What :func:`run_online` did: the SLAM result, why it stopped (``interrupted`` or
     ``end of data``), events taken per device, the largest lag of an event behind the
-    clock when it was processed (log s), events that came after the merge had gone past
+    clock when it was processed, of those released by the arrival of data (log s; not of
+    those released by a silence, which waited ``silent_after`` for it, nor the end's flush),
+    events that came after the merge had gone past
     them (``late``: the first events of a device after a silence, e.g. at the start; the
     pipeline's reorder buffer puts them back in order, or counts them as out of order
     beyond its window), silences declared per device, and the ports' final status."""
@@ -116,11 +118,12 @@ def run_online(
     next_status = t_wall
     reason = "interrupted"
 
-    def take(evs: list[Event]) -> None:
+    def take(evs: list[Event], streaming: bool = True) -> None:
         nonlocal lag, max_lag
         for ev in evs:
             lag = clock.now() - ev.t
-            max_lag = max(max_lag, lag)
+            if streaming:
+                max_lag = max(max_lag, lag)
             pipe.add(ev)
 
     while not stop.is_set():
@@ -129,7 +132,7 @@ def run_online(
             for n, q in item.items():
                 if q > silent_after and n not in merger.silent:
                     silences[n] += 1
-                    take(merger.set_silent(n))
+                    take(merger.set_silent(n), streaming=False)
                 elif q <= silent_after and n in merger.silent:
                     take(merger.set_silent(n, False))  # streaming again: wait for it
             if flowing and min(item.values()) > idle_timeout:
@@ -150,8 +153,8 @@ def run_online(
     # what has arrived is processed, then the scans still waiting for their sonar window
     for ev in ports.drain():
         counts[source(ev)] += 1
-        take(merger.push(source(ev), ev))
-    take(merger.flush())
+        take(merger.push(source(ev), ev), streaming=False)
+    take(merger.flush(), streaming=False)
     res = pipe.finish()[0]
     res.stats.update({f"events_{k}": v for k, v in counts.items()})
     if merger.late:
