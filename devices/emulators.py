@@ -138,6 +138,9 @@ class PtyEmulator:
         self._stop = threading.Event()
         self._master = self._slave = -1
         self.connected = False
+        self._host_seen = False  # a host has opened the port
+        self._host_open = False  # a host holds it open now
+        self.host_gone_since = time.monotonic()  # wall time the host closed it (or start)
         self._down_until: float | None = None
         self._stall_until = -math.inf
         self._stalled = -1
@@ -198,6 +201,30 @@ class PtyEmulator:
         """Whether a host has connected and started the data stream."""
         raise NotImplementedError
 
+    def host_gone_for(self) -> float:
+        """Wall seconds since a host that had opened the port closed it (0 while one holds
+        it open, or before any did)."""
+        if self._host_open or not self._host_seen:
+            return 0.0
+        return time.monotonic() - self.host_gone_since
+
+    def _check_host(self) -> bool:
+        """Whether a host holds the port open (the master hangs up when none does)."""
+        if not self.connected:
+            return False
+        try:
+            p = select.poll()
+            p.register(self._master, select.POLLHUP)
+            hup = any(ev & select.POLLHUP for _, ev in p.poll(0))
+        except (OSError, ValueError):
+            return False
+        if not hup and not self._host_open:
+            self._host_seen = self._host_open = True
+        elif hup and self._host_open:
+            self._host_open = False
+            self.host_gone_since = time.monotonic()
+        return not hup
+
     def send(self, data: bytes, due: float = IMMEDIATE, frame: bool = False) -> None:
         """Queue bytes to write at log time ``due`` (at the device's current rate)."""
         with self._lock:
@@ -230,13 +257,19 @@ class PtyEmulator:
         m, s = os.openpty()
         tty.setraw(s)
         os.set_blocking(m, False)
-        self._master, self._slave = m, s
+        name = os.ttyname(s)
+        # the slave is the host's alone: with no host holding it the master hangs up, so
+        # the emulator sees a host go (the pty and its buffer live on with the master)
+        os.close(s)
+        self._master, self._slave = m, -1
         tmp = self.link_dir / f".{self.name}.{os.getpid()}.tmp"
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
-        os.symlink(os.ttyname(s), tmp)
+        os.symlink(name, tmp)
         os.replace(tmp, self.port)
         self.connected = True
+        self._host_seen = self._host_open = False
+        self.host_gone_since = time.monotonic()
 
     def _unplug(self) -> None:
         if not self.connected:
@@ -284,7 +317,10 @@ class PtyEmulator:
                     timeout = min(timeout, self.clock.wall(due - now))
                 if self._down_until is not None:
                     timeout = min(timeout, self.clock.wall(self._down_until - now))
-                fds = [self._wake_r] + ([self._master] if self.connected else [])
+                host = self._check_host()
+                if not host:
+                    timeout = min(timeout, 0.02)  # a hung-up master is always readable
+                fds = [self._wake_r] + ([self._master] if host else [])
             try:
                 ready, _, _ = select.select(fds, [], [], max(0.0, timeout))
             except (OSError, ValueError):
@@ -359,7 +395,7 @@ class PtyEmulator:
                 self.stats.bytes_sent += n
                 view = view[n:]
             except BlockingIOError:
-                if time.monotonic() > deadline:
+                if time.monotonic() > deadline or self._stop.is_set():
                     self.stats.overflow_bytes += len(view)
                     return
                 select.select([], [self._master], [], 0.01)

@@ -48,6 +48,7 @@ from fgslam.slam.runner import SlamPipeline, SlamResult
 REORDER_WINDOW = 2.0  # s of log time: what is left out of order after the merge (late events)
 STATUS_INTERVAL = 0.25  # wall s between status updates
 SILENT_AFTER = 1.0  # s of a driver's attentive waiting without data: the merge goes on without it
+HOST_GONE = 0.5  # wall s after every host closed its port: fgslam emulate stops
 
 
 @dataclass
@@ -322,8 +323,9 @@ def emulate_main(
     out: Any = None,
 ) -> int:
     """``fgslam emulate``: start the emulators, print their ports and the matching
-    ``fgslam online`` command, play the run once every host streams, stop at its end or
-    when ``stop`` is set."""
+    ``fgslam online`` command, play the run once every host streams, stop at its end, when
+    every host has closed its port again (:data:`HOST_GONE` s after the last), or when
+    ``stop`` is set."""
     from fgslam.sim.world import load_world
 
     out = out or sys.stdout
@@ -359,13 +361,22 @@ def emulate_main(
         print(f"  odometry  {ports['odometry']}  (odometry board)", file=out)
         print("the run starts once a host streams from every port; in another terminal:", file=out)
         print(f"  {online_command_line(ports, speed)}", file=out, flush=True)
+
+        def hosts_gone() -> bool:  # every host that had opened its port closed it again
+            return all(e.host_gone_for() > HOST_GONE for e in emu.emulators)
+
         while not stop.is_set() and not emu.started.wait(0.1):
             pass
         if emu.started.is_set():
             print("every host is streaming: run started", file=out, flush=True)
+        gone = False
         while not stop.is_set() and not emu.wait(0.1):
-            pass
-        if emu.done and not stop.is_set():
+            if hosts_gone():
+                gone = True
+                break
+        if gone:
+            print("every host closed its port: stopping", file=out, flush=True)
+        elif emu.done and not stop.is_set():
             # let the last scheduled frames go out (a laser scan leaves after its stamp)
             stop.wait(max(0.5, emu.clock.wall(1.0)))
         if emu.playback.error is not None:

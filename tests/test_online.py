@@ -27,7 +27,7 @@ from devices.raw import RawReader
 from fgslam.cli import main
 from fgslam.config import load_config
 from fgslam.device_process import DeviceProcess, EmulationSpec
-from fgslam.events import LaserScan, TruthPose
+from fgslam.events import LaserScan, OdometryEvent, TruthPose
 from fgslam.logfile import LogReader
 from fgslam.online import online_main, run_online, source
 from fgslam.ports import replay, replay_to_log, start_emulators
@@ -368,6 +368,34 @@ def test_emulate_and_online_commands_with_ctrl_c(tmp_path):
             if p is not None and p.poll() is None:
                 p.kill()
                 p.communicate()
+
+
+def test_emulate_stops_when_its_host_is_gone(tmp_path):
+    """A host streams from every port of ``fgslam emulate`` (a 600 s run in real time) and
+    then closes them: the emulator notices and ends, writing its summary."""
+    links = tmp_path / "links"
+    emulate = ["emulate", "--duration", "600", "--seed", "4", "--link-dir", str(links)]
+    emu = subprocess.Popen(
+        [*FGSLAM, *emulate], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    try:
+        assert wait_until(lambda: (links / "odometry").exists(), timeout=60)
+        ports = {"laser": str(links / "laser"), "odometry": str(links / "odometry")}
+        sonar = [str(links / "sonar0"), str(links / "sonar1")]
+        with DeviceProcess(CFG, **ports, sonar=sonar) as dev:
+            assert dev.wait_connected(60)
+            got = 0
+            deadline = time.monotonic() + 60
+            while got < 20 and time.monotonic() < deadline:  # the run is playing
+                got += isinstance(dev.poll(0.1), OdometryEvent)
+            assert got >= 20
+        out, err = emu.communicate(timeout=120)  # the run itself would take 600 s
+        assert emu.returncode == 0, err
+        assert "every host closed its port" in out and "stopped:" in out, out
+    finally:
+        if emu.poll() is None:
+            emu.kill()
+            emu.communicate()
 
 
 @pytest.mark.parametrize(
