@@ -648,10 +648,10 @@ class Playback:
     listen. Actions that fall behind run at once (the run then lags real time rather than
     skipping data).
 
-    The schedule is computed ahead by a thread of its own (a simulation is costly: ray
-    casting, sonar echoes), and the playback starts once ``lead`` s of run time are ready
-    (inf: all of it), so that a busy host delays the start rather than the data: emulated
-    devices keep their time as real ones do.
+    The schedule is computed ahead (a simulation is costly: ray casting, sonar echoes): its
+    first ``lead`` s of run time (inf: all of it) in :meth:`start`, before any host can be
+    waiting for data, the rest by a thread of its own, so that a busy host delays the start
+    rather than the data: emulated devices keep their time as real ones do.
     """
 
     def __init__(
@@ -680,20 +680,29 @@ class Playback:
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._producer = threading.Thread(target=self._produce, name=f"{name}-ahead", daemon=True)
 
+    def _fill(self, until: float) -> bool:
+        """Compute the schedule up to run time ``until``; False once it is exhausted."""
+        for item in self._items:
+            self._ahead.put(item)
+            self._computed = item[0]
+            if self._computed >= until or self._stop.is_set():
+                return True
+        self._ahead.put(None)
+        self._all_computed.set()
+        return False
+
     def _produce(self) -> None:
         try:
-            for item in self.schedule:
-                if self._stop.is_set():
-                    return
-                self._ahead.put(item)
-                self._computed = item[0]
+            if not self._all_computed.is_set():
+                self._fill(math.inf)
         except BaseException as exc:
             self.error = exc
-        finally:
             self._ahead.put(None)
             self._all_computed.set()
 
     def start(self) -> Playback:
+        self._items = iter(self.schedule)
+        self._fill(self.lead)
         self._producer.start()
         self._thread.start()
         return self
@@ -710,9 +719,6 @@ class Playback:
                 while not self.wait_for() and time.monotonic() < deadline:
                     if self._stop.wait(0.02):
                         return
-            while self._computed < self.lead and not self._all_computed.is_set():
-                if self._stop.wait(0.02):
-                    return
             self.offset = self.clock.now()
             self.started.set()
             while (item := self._ahead.get()) is not None:

@@ -434,8 +434,8 @@ def start_emulators(
     for every device (each gets its own seed) or a dict by device name. With
     ``wait_for_hosts`` the run starts once every device's host is streaming (at most
     ``wait_timeout`` wall s). Drivers in the same process should share ``Emulation.clock``.
-    The simulation runs ahead of the playback in a thread of its own, and the playback
-    starts once ``lead`` s of the run are computed (inf: the whole run), so that the devices
+    The first ``lead`` s of the simulation (inf: the whole run) are computed before this
+    returns and the rest ahead of the playback in a thread of its own, so that the devices
     keep their times on a busy host (:class:`devices.emulators.Playback`).
     """
     clock = clock or Clock(speed)
@@ -493,9 +493,9 @@ def start_emulators(
         wait_timeout=wait_timeout,
         lead=lead,
     )
+    emulation.playback.start()  # computes the lead before the emulators answer anyone
     for e in emus:
         e.start()
-    emulation.playback.start()
     return emulation
 
 

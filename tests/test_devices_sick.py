@@ -204,3 +204,32 @@ def test_receiver_never_raises(data, cuts):
         for item in rcv.feed(float(k), c):
             if isinstance(item, sick.LaserFrame):
                 assert item.t <= item.t_host
+
+
+def test_scans_read_in_one_chunk_get_their_own_stamps():
+    """A host that read late finds two scans (and a few bytes of a third) in one chunk read
+    at time t: the first ended two frames' plus the tail's transmission before t, the
+    second one frame plus the tail before, each stamped at its first byte."""
+    from devices.sick import (
+        DEVICE_ADDRESS,
+        SickReceiver,
+        build_telegram,
+        encode_b0,
+        transmission_time,
+    )
+
+    baud = 38400
+    tel = build_telegram(DEVICE_ADDRESS, encode_b0(np.full(361, 250)))
+    tail = tel[:7]
+    rcv = SickReceiver()
+    rcv.reset(baud)
+    t = 100.0
+    scans = [x for x in rcv.feed(t, tel + tel + tail) if hasattr(x, "ranges")]
+    frame = transmission_time(len(tel), baud)
+    rest = transmission_time(len(tail), baud)
+    assert [s.t for s in scans] == pytest.approx([t - rest - 2 * frame, t - rest - frame])
+    assert all(s.t_host == t for s in scans)
+    # the same bytes one chunk each: each frame stamped by its own read
+    rcv.reset(baud)
+    a = [x for x in rcv.feed(50.0, tel) if hasattr(x, "ranges")]
+    assert [s.t for s in a] == pytest.approx([50.0 - frame])

@@ -30,7 +30,7 @@ from fgslam.device_process import DeviceProcess, EmulationSpec
 from fgslam.events import LaserScan, OdometryEvent, TruthPose
 from fgslam.logfile import LogReader
 from fgslam.online import online_main, run_online, source
-from fgslam.ports import replay, replay_to_log, start_emulators
+from fgslam.ports import laser_distances_cm, replay, replay_to_log, start_emulators
 from fgslam.sim import simulate_to_log
 from fgslam.sim.world import load_world
 from fgslam.slam.runner import SlamPipeline, run_backends, run_slam
@@ -148,15 +148,16 @@ def landmark_points(res) -> dict[str, np.ndarray]:
 
 
 def assert_everything_arrived(run, emulation, duration) -> None:
-    """Every frame sent arrived intact and was processed; a device was lost only after the
-    end of the data (silent, while the host was still working), never during it."""
-    end = emulation["start_time"] + duration
+    """Every frame sent arrived intact and was processed; a device was lost only outside the
+    run (silent after the end of the data while the host was still working), never during
+    it."""
+    start, end = emulation["start_time"], emulation["start_time"] + duration
     for name, s in run.status.items():
         assert s["crc_errors"] == s.get("dropped_frames", 0) == s["discarded"] == 0, name
         assert run.events[name] == emulation["stats"][name]["frames_sent"] > 0, name
-        assert s["opens"] == 1 + s["disconnects"], name
-        assert all(t > end for t in s["disconnect_times"]), (name, s["disconnect_times"], end)
-        assert s["finished"] or s["disconnects"], name
+        assert s["disconnects"] <= s["opens"] <= 1 + s["disconnects"], name
+        during = [t for t in s["disconnect_times"] if start <= t <= end]
+        assert not during, (name, during, start, end)
     # a device's first event after a silence (the start) may come after the merge went on:
     # the pipeline's reorder buffer puts it back; nothing is dropped
     assert run.late <= 4 and "events_out_of_order" not in run.result.stats
@@ -189,23 +190,49 @@ def test_online_equals_fgslam_run_on_the_replayed_recording(online_run, tmp_path
     assert_equals_replay(run, raw, tmp_path)
 
 
+def laser_restamped(sim_events, online_events, start_time):
+    """The simulator's events with each laser scan stamped as the host stamped it in the
+    online run (found by its distance fields; the run's time 0 is log time
+    ``start_time``), in time order: what the simulation looks like through the host's
+    laser time registration, the one link of the chain whose error is the host's read
+    latency and so depends on its load."""
+    stamps = {
+        laser_distances_cm(e.ranges).tobytes(): e.t - start_time
+        for e in online_events
+        if isinstance(e, LaserScan)
+    }
+    out = []
+    for e in sim_events:
+        if isinstance(e, LaserScan):
+            t = stamps.get(laser_distances_cm(e.ranges).tobytes())
+            if t is None:
+                continue  # not sent (the emulated run ends a little earlier)
+            e = LaserScan(t, e.ranges)
+        out.append(e)
+    return sorted(out, key=lambda e: e.t)
+
+
 def test_online_matches_fgslam_run_on_the_simulated_log(online_run, tmp_path):
-    """``fgslam run`` on the simulator's log of the same seed and duration. Not equal: on
-    the host every laser stamp carries the read latency of the pty and the driver thread
-    (a few ms wall, x3 in log time), sonar and odometry times come from the device-clock
-    filter, sonar readings are quantised to 1 mm / 1e-4 rad, and log time starts elsewhere.
-    Both runs start at the origin (the truth is left out of the log). Observed over 40 s
-    (seeds 1 and 5): final pose 1-6 mm and 0.03 deg apart; the same line and point counts,
-    corners 6 vs 6-8 (a corner near the gate is sometimes ambiguous, sometimes new);
-    nearest-neighbour landmark distances median 2-5 mm, max 2.3 cm. Tolerances, several
-    times that: final pose within 5 cm and 0.5 deg; landmark counts by kind within 3;
-    median nearest-neighbour distance below 2 cm and 80 % of the landmarks within 10 cm
-    (an association decided differently moves a segment's extent)."""
-    run, _, _, _ = online_run
+    """``fgslam run`` on the simulator's log of the same seed and duration, its laser scans
+    stamped as the host stamped them online (:func:`laser_restamped`: on a loaded host a
+    stamp carries seconds of read latency, and that is the host's, not the chain's). Not
+    equal: sonar and odometry times come from the device-clock filter, sonar readings are
+    quantised to 1 mm / 1e-4 rad, laser ranges to 1 cm. Both runs start at the origin (the
+    truth is left out). Observed over 40 s (seeds 1 and 5, before the restamping, on a quiet
+    host): final pose 1-6 mm and 0.03 deg apart; the same line and point counts, corners 6
+    vs 6-8 (a corner near the gate is sometimes ambiguous, sometimes new); nearest-neighbour
+    landmark distances median 2-5 mm, max 2.3 cm. Tolerances, several times that: final pose
+    within 5 cm and 0.5 deg; landmark counts by kind within 3; median nearest-neighbour
+    distance below 2 cm and 80 % of the landmarks within 10 cm (an association decided
+    differently moves a segment's extent)."""
+    run, emulation, raw, _ = online_run
     log = tmp_path / "sim.log"
     simulate_to_log(load_world("corridor"), CFG, log, SEED, DURATION)
     with LogReader(log) as reader:
-        ref = run_slam((e for e in reader if not isinstance(e, TruthPose)), CFG)
+        sim = [e for e in reader if not isinstance(e, TruthPose)]
+    evs = laser_restamped(sim, replay(raw), emulation["start_time"])
+    assert sum(isinstance(e, LaserScan) for e in evs) == run.events["laser"]
+    ref = run_slam(evs, CFG)
     res = run.result
     assert abs(len(ref.times) - len(res.times)) <= 1
     d = ref.poses[-1] - res.poses[-1]
@@ -258,7 +285,9 @@ def test_disconnect_mid_run_reconnects_and_records_everything(tmp_path):
     st = run.status
     assert run.reason == "end of data" and len(run.result.times) > 50
     assert st["odometry"]["disconnects"] >= 1 and st["odometry"]["opens"] >= 2
-    assert st["sonar0"]["discarded"] > 0 and st["laser"]["disconnects"] == 0
+    assert st["sonar0"]["discarded"] > 0
+    start, end = emulation["start_time"], emulation["start_time"] + 25.0
+    assert not [t for t in st["laser"]["disconnect_times"] if start <= t <= end]
     replayed = Counter(source(e) for e in replay(raw))
     assert replayed == run.events
     for name in ("laser", "sonar0", "sonar1"):
