@@ -27,7 +27,6 @@ import numpy as np
 
 from fgslam.config import ConfigError, RobotConfig, from_dict
 from fgslam.errors import UserError
-from fgslam.safeio import temp_path
 from fgslam.events import (
     SONAR_KINDS,
     Event,
@@ -37,6 +36,7 @@ from fgslam.events import (
     SonarReading,
     TruthPose,
 )
+from fgslam.safeio import temp_path
 
 FORMAT_NAME = "FGSLAM-LOG"
 FORMAT_VERSION = 1

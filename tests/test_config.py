@@ -132,6 +132,6 @@ def test_contradicting_the_log_names_both(tmp_path):
     import tomli_w
 
     p = write(tmp_path, tomli_w.dumps({"sonar": {"arrays": one}}))
-    with pytest.raises(ConfigError, match="1 sonar arrays, but the log x.log has 2"):
+    with pytest.raises(ConfigError, match=r"1 sonar arrays, but the log x\.log has 2"):
         check_against_log(override_config(log_cfg, p), log_cfg, "x.log")
     check_against_log(log_cfg, log_cfg, "x.log")
