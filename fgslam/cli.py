@@ -251,6 +251,10 @@ _STREAM_TYPES = {
     "laser": "LaserScan",
     "sonar": "SonarReading",
     "truth": "TruthPose",
+    "ODOM": "OdometryEvent",
+    "FLASER": "LaserScan",
+    "ROBOTLASER1": "LaserScan",
+    "TRUEPOS": "TruthPose",
 }
 
 
@@ -269,14 +273,19 @@ def _input_notes(reader, tap: _Tap, results: list) -> tuple[dict, list[str]]:
     stats = results[0].stats if results else {}
     dropped = int(stats.get("events_out_of_order", 0))
     reordered = int(stats.get("events_reordered", 0))
-    skipped = int(summary.get("skipped", 0))
+    by_reason = dict(summary.get("skipped_by_reason", {}))
+    # records of types a foreign reader does not use (CARMEN NEFF, ...) are not data lost
+    foreign = problems is not None and not isinstance(problems, list)
+    ignored = {k: n for k, n in by_reason.items() if foreign and k.startswith("unknown record")}
+    skipped = int(summary.get("skipped", 0)) - sum(ignored.values())
     back = summary.get("timestamps_backwards", {})
     total = tap.events + skipped
     info = {
         "records": total,
         "events_read": tap.events,
         "skipped": skipped,
-        "skipped_by_reason": summary.get("skipped_by_reason", {}),
+        "skipped_by_reason": {k: n for k, n in by_reason.items() if k not in ignored},
+        "ignored_record_types": ignored,
         "timestamps_backwards": back,
         "events_put_back_in_order": reordered,
         "events_dropped_out_of_order": dropped,
@@ -286,6 +295,8 @@ def _input_notes(reader, tap: _Tap, results: list) -> tuple[dict, list[str]]:
     notes = []
     if skipped:
         notes.append(f"skipped {skipped} bad records: {info['skipped_by_reason']}")
+    if ignored:
+        notes.append(f"ignored records of types not used: {ignored}")
     if back or dropped or reordered:
         by = ", ".join(f"{n} {k}" for k, n in sorted(back.items())) or "none"
         notes.append(

@@ -213,17 +213,22 @@ def markdown_table(rows: list[dict[str, Any]]) -> str:
     return head + "\n".join(lines) + "\n" + tail
 
 
-def plot_comparison(results: list[SlamResult], path: Path, world: Any = None) -> None:
+def plot_comparison(results: list[SlamResult], path: Path, world: Any = None) -> dict[str, Any]:
     """Trajectories on equal axes in a panel of the path's aspect ratio (with the world
     outline of a simulated log), and position errors against the truth over time on a linear
     axis clipped to the backends' errors (odometry alone may leave it: its error is in the
-    table)."""
+    table). Returns the axes' limits and scales."""
     xy = [r.poses[:, :2] for r in results if len(r.poses)]
     xy += [r.truth[:, :2] for r in results[:1] if r.has_truth]
     allxy = np.concatenate(xy) if xy else np.zeros((1, 2))
     lo, hi = allxy.min(axis=0), allxy.max(axis=0)
-    pad = 0.04 * max(float(np.max(hi - lo)), 1.0)
+    pad = max(1.0, 0.06 * float(np.max(hi - lo)))
     lo, hi = lo - pad, hi + pad
+    # no thinner than 1:4, so that a straight drive is not a hair-line strip
+    short = int(np.argmin(hi - lo))
+    grow = max(0.0, float(np.max(hi - lo)) / 4.0 - (hi[short] - lo[short]))
+    lo[short] -= grow / 2
+    hi[short] += grow / 2
     w, h = hi - lo
     top_h = float(np.clip(13.0 * h / w, 3.0, 12.0))
     fig, (ax1, ax2) = plt.subplots(
@@ -271,3 +276,10 @@ def plot_comparison(results: list[SlamResult], path: Path, world: Any = None) ->
     with safeio.atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=110)
     plt.close(fig)
+    return {
+        "xlim": ax1.get_xlim(),
+        "ylim": ax1.get_ylim(),
+        "aspect": ax1.get_aspect(),
+        "error_yscale": ax2.get_yscale(),
+        "error_ylim": ax2.get_ylim(),
+    }
