@@ -251,10 +251,6 @@ _STREAM_TYPES = {
     "laser": "LaserScan",
     "sonar": "SonarReading",
     "truth": "TruthPose",
-    "ODOM": "OdometryEvent",
-    "FLASER": "LaserScan",
-    "ROBOTLASER1": "LaserScan",
-    "TRUEPOS": "TruthPose",
 }
 
 
@@ -312,7 +308,8 @@ def _input_notes(reader, tap: _Tap, results: list) -> tuple[dict, list[str]]:
         )
         info["warning"] = msg
         notes.append(f"WARNING: {msg}")
-    else:  # a few lost records of one kind (odometry) can matter more than their number says
+    elif not foreign:  # a few lost records of one kind (odometry) can matter more than
+        # their number says; foreign readers carry or drop such records themselves and say so
         for stream, n in sorted(back.items()):
             of = tap.by_type.get(_STREAM_TYPES.get(stream, ""), 0)
             if of and n > WARN_FRACTION * of:
