@@ -192,21 +192,22 @@ def plot_map(
     *,
     world: Any = None,
     points: np.ndarray | None = None,
+    truth_label: str = "true path",
 ) -> None:
     """The map as a person recognises it: the laser points placed with the estimate (grey),
     the world outline of a simulated log (black), the true or reference path, odometry, the
     estimate, and the landmarks on top; the figure is sized to what is drawn."""
     fig, ax = plt.subplots(figsize=_figsize(res, points))
     if points is not None and len(points):
-        ax.plot(points[:, 0], points[:, 1], ",", color="0.55")
-        ax.plot([], [], ".", color="0.55", ms=3, label="laser points (placed with the estimate)")
+        ax.plot(points[:, 0], points[:, 1], ".", color="0.35", ms=0.6, mew=0, alpha=0.8)
+        ax.plot([], [], ".", color="0.35", ms=3, label="laser points (placed with the estimate)")
     if world is not None:
         from fgslam.plotting import draw_world
 
         draw_world(ax, world)
         ax.plot([], [], "k-", lw=1.0, label="world (simulator)")
     if res.has_truth:
-        ax.plot(res.truth[:, 0], res.truth[:, 1], "-", color="0.3", lw=1.0, label="true path")
+        ax.plot(res.truth[:, 0], res.truth[:, 1], "-", color="tab:cyan", lw=1.0, label=truth_label)
     if len(res.odometry):
         ax.plot(
             res.odometry[:, 0],
@@ -272,14 +273,20 @@ def _extent(res: SlamResult, points: np.ndarray | None) -> tuple[float, ...] | N
     """x0, x1, y0, y1 of the trajectories, the landmarks and (all but the farthest 0.2 % of)
     the laser points, with a margin."""
     parts = [res.poses[:, :2]]
+    marks = []
     for lid, lm in res.landmarks.items():
         m = res.means.get(lid)
         if m is None:
             continue
         if lm.kind == "line" and lm.extent is not None:
-            parts.append(line_endpoints(m, lm.extent)[:, :2])
+            marks.append(line_endpoints(m, lm.extent)[:, :2])
         elif lm.kind in ("corner", "point"):
-            parts.append(np.asarray(m[:2], dtype=float).reshape(1, 2))
+            marks.append(np.asarray(m[:2], dtype=float).reshape(1, 2))
+    if marks:
+        lm_xy = np.concatenate(marks)
+        if len(lm_xy) > 100:  # a few wild landmarks must not shrink the map to a corner
+            lm_xy = np.percentile(lm_xy, [1.0, 99.0], axis=0)
+        parts.append(lm_xy)
     if res.has_truth:
         parts.append(res.truth[:, :2])
     if points is not None and len(points) > 10:
@@ -350,5 +357,6 @@ def write_outputs(
     points = None
     if scans and cfg is not None and len(res.times):
         points = laser_points(scans, res.times, res.poses, cfg)
-    plot_map(res, out / "map.png", world=world, points=points)
+    label = "reference path" if rep.get("truth_source") == "reference" else "true path"
+    plot_map(res, out / "map.png", world=world, points=points, truth_label=label)
     return rep
