@@ -144,7 +144,11 @@ def _image_path(out: str, log: str) -> str:
     known image suffix; an unknown image format is refused."""
     from matplotlib.backend_bases import FigureCanvasBase
 
+    from fgslam.safeio import is_special
+
     p = Path(out)
+    if is_special(p):
+        return out  # /dev/null: written as PNG in place
     if p.is_dir():
         name = Path(log).name.split(".")[0] or "log"
         return str(p / f"{name}.png")

@@ -36,7 +36,7 @@ from fgslam.events import (
     SonarReading,
     TruthPose,
 )
-from fgslam.safeio import temp_path
+from fgslam.safeio import is_special, temp_path
 
 FORMAT_NAME = "FGSLAM-LOG"
 FORMAT_VERSION = 1
@@ -178,7 +178,7 @@ class LogWriter:
         self.config = config
         self._n_beams = config.laser.n_beams
         self._n_arrays = len(config.sonar.arrays)
-        self._tmp = temp_path(path)
+        self._tmp = path if is_special(path) else temp_path(path)
         self._f = open_text(self._tmp, "w")
         self._done = False
         self._f.write("\n".join(lines) + "\n")
@@ -204,7 +204,8 @@ class LogWriter:
         self._done = True
         try:
             self._f.close()
-            os.replace(self._tmp, self.path)
+            if self._tmp != self.path:
+                os.replace(self._tmp, self.path)
         except BaseException:
             self._discard()
             raise
@@ -220,8 +221,9 @@ class LogWriter:
             self._discard()
 
     def _discard(self) -> None:
-        with contextlib.suppress(OSError):
-            os.unlink(self._tmp)
+        if self._tmp != self.path:
+            with contextlib.suppress(OSError):
+                os.unlink(self._tmp)
 
     def __enter__(self) -> LogWriter:
         return self

@@ -147,7 +147,7 @@ def plot_log(
     ax.legend(uniq.values(), uniq.keys(), loc="best", fontsize=7)
     fig.tight_layout()
     with atomic_path(out) as tmp:
-        fig.savefig(tmp, dpi=130)
+        fig.savefig(tmp, dpi=130, format=Path(out).suffix.lstrip(".").lower() or "png")
     plt.close(fig)
     if len(truth_a) and len(odo_path):
         info["odometry_final_error_m"] = float(np.hypot(*(odo_path[-1, :2] - truth_a[-1, :2])))

@@ -22,10 +22,21 @@ def temp_path(path: str | os.PathLike[str]) -> Path:
     return p.with_name(f".tmp-{secrets.token_hex(4)}-{p.name}")
 
 
+def is_special(path: str | os.PathLike[str]) -> bool:
+    """True for an existing target that is not a regular file (``/dev/null``, a FIFO): it is
+    written in place, never replaced by a rename."""
+    p = Path(path)
+    return p.exists() and not p.is_file() and not p.is_dir()
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     """Yield a temporary path to write; on success it replaces ``path`` in one rename, on an
-    exception it is deleted (``path`` is left as it was)."""
+    exception it is deleted (``path`` is left as it was). A special file (``/dev/null``) is
+    written in place."""
+    if is_special(path):
+        yield Path(path)
+        return
     tmp = temp_path(path)
     try:
         yield tmp
@@ -83,6 +94,12 @@ def check_output_file(
     if out.is_dir():
         raise UserError(f"cannot write {out}: it is a folder (give a file name)")
     _not_an_input(out, inputs)
+    if is_special(out):
+        try:
+            open(out, "ab").close()
+        except OSError as exc:
+            raise UserError(f"cannot write {out}: {exc.strerror or exc}") from None
+        return out
     folder = out.parent
     if not folder.exists():
         raise UserError(f"cannot write {out}: folder {folder} does not exist")

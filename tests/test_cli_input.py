@@ -327,3 +327,28 @@ def test_a_few_percent_of_one_stream_lost_is_a_warning():
     reader.summary = lambda: {"skipped": 0, "timestamps_backwards": {}}
     extra, notes = _input_notes(reader, tap, [res])
     assert notes == [] and "warning" not in extra["input"]
+
+
+def test_compare_reads_carmen_logs(tmp_path):
+    """compare accepts every format run accepts, and says what it ran on."""
+    from fgslam.slam.compare import compare
+
+    src = tmp_path / "room.log"
+    src.write_text(carmen_text(corrected=True))
+    rows = compare(src, tmp_path / "cmp", backends=("ekf",), sensors=("laser",), workers=1)
+    assert len(rows) == 1 and rows[0]["poses"] == 30
+    md = (tmp_path / "cmp" / "comparison.md").read_text()
+    assert md.startswith("# fgslam compare: room.log") and "30 scans of 180 beams" in md
+    assert "along the reference" in md
+    assert (tmp_path / "cmp" / "ekf-laser" / "map.png").exists()
+
+
+def test_dev_null_is_written_in_place_never_replaced(tiny_log, capsys):
+    import os
+    import stat
+
+    assert main(["simulate", "--duration", "1", "--out", os.devnull]) == 0
+    assert main(["plot-log", str(tiny_log), "--out", os.devnull]) == 0
+    assert f"wrote {os.devnull}:" in capsys.readouterr().out
+    assert stat.S_ISCHR(os.stat(os.devnull).st_mode)
+    assert not any(n.startswith((".tmp-", "null.")) for n in os.listdir(Path(os.devnull).parent))
