@@ -149,7 +149,7 @@ def _image_path(out: str, log: str) -> str:
     p = Path(out)
     if is_special(p):
         return out  # /dev/null: written as PNG in place
-    if p.is_dir():
+    if p.is_dir() or out.endswith(("/", os.sep)):
         name = Path(log).name.split(".")[0] or "log"
         return str(p / f"{name}.png")
     suffix = p.suffix.lower().lstrip(".")

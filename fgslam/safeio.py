@@ -19,7 +19,7 @@ def temp_path(path: str | os.PathLike[str]) -> Path:
     """A fresh hidden name in ``path``'s folder that ends like ``path`` (``.log.gz``, ``.png``),
     so writers that choose compression or format by the name do the same for it."""
     p = Path(path)
-    return p.with_name(f".tmp-{secrets.token_hex(4)}-{p.name}")
+    return p.with_name(f".tmp-{secrets.token_hex(4)}-{p.name[-200:]}")  # within NAME_MAX
 
 
 def is_special(path: str | os.PathLike[str]) -> bool:
@@ -65,10 +65,11 @@ def _same_file(a: Path, b: Path) -> bool:
         return False
 
 
-def _probe(folder: Path, what: str) -> None:
-    """Create and delete a file in ``folder``: the only writability test that holds for root
-    and for read-only file systems alike."""
-    probe = folder / f".tmp-{secrets.token_hex(4)}-probe"
+def _probe(folder: Path, what: str, name: str = "probe") -> None:
+    """Create and delete a file in ``folder`` named like the temporary file of ``name``: the
+    only writability test that holds for root and read-only file systems alike (and that
+    meets a name too long before the work)."""
+    probe = temp_path(folder / name)
     try:
         probe.write_bytes(b"")
         probe.unlink()
@@ -91,8 +92,8 @@ def check_output_file(
     """Check that ``path`` can be written as a file and is none of ``inputs``; one-line
     :class:`UserError` otherwise. Nothing is created but a probe file, deleted at once."""
     out = Path(path)
-    if out.is_dir():
-        raise UserError(f"cannot write {out}: it is a folder (give a file name)")
+    if out.is_dir() or str(path).endswith(("/", os.sep)):
+        raise UserError(f"cannot write {path}: it is a folder (give a file name)")
     _not_an_input(out, inputs)
     if is_special(out):
         try:
@@ -105,7 +106,7 @@ def check_output_file(
         raise UserError(f"cannot write {out}: folder {folder} does not exist")
     if not folder.is_dir():
         raise UserError(f"cannot write {out}: {folder} is not a folder")
-    _probe(folder, str(out))
+    _probe(folder, str(out), out.name)
     return out
 
 

@@ -101,6 +101,7 @@ def compare(
             res,
             out / f"{res.backend}-{res.sensors}",
             true_map,
+            extra={"truth_source": truth_kind} if res.has_truth else None,
             world=world,
             scans=info.get("scans"),
             cfg=cfg,
