@@ -27,6 +27,7 @@ Typical use:
   fgslam compare run.log.gz --out cmp/          EKF, iSAM2, batch x fused, laser, sonar
   fgslam demo                                   simulate the built-in run and compare
   fgslam evaluate out/trajectory.tum --reference ref.tum   ATE, RPE, NEES
+  fgslam export-reference run.log.gz --out ref.tum   truth/reference poses as TUM (for evo)
   fgslam emulate --speed 4 --link-dir /tmp/robot   emulated devices on pseudo-terminals
   fgslam online --laser PORT --sonar PORT --sonar PORT --odom PORT --out DIR   live SLAM
 

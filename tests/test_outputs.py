@@ -181,3 +181,21 @@ def test_atomic_path_keeps_the_old_file_on_failure(tmp_path):
             raise RuntimeError("disk full")
     assert target.read_text() == '{\n  "v": 1\n}\n'
     assert [p.name for p in tmp_path.iterdir()] == ["a.json"]
+
+
+def test_partial_result_without_a_single_pose_is_written(tmp_path):
+    """A backend that failed at its first keyframe still leaves readable outputs."""
+    res = dataclasses.replace(
+        _fake([0.0, 1.0], [(0, 0, 0), (1, 0, 0)]),
+        times=np.zeros(0),
+        poses=np.zeros((0, 3)),
+        covs=[],
+        filtered=np.zeros((0, 3)),
+        odometry=np.zeros((0, 3)),
+        latencies=[],
+        stats=Counter({"partial": {"keyframe": 0, "t": 0.0, "error": "boom"}}),
+    )
+    rep = write_outputs(res, tmp_path, scans=[(0.5, np.ones(361))], cfg=load_config())
+    assert rep["partial"]["error"] == "boom" and rep["poses"] == 0
+    assert (tmp_path / "map.png").stat().st_size > 0
+    assert (tmp_path / "trajectory.tum").read_text() == ""
