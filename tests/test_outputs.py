@@ -158,6 +158,10 @@ def test_comparison_md_explains_itself():
     assert "10.0 s, 10.0 m travelled (along the reference)" in head
     assert "40 scans of 361 beams over 180 deg" in head and "9 readings from 2 arrays" in head
     assert "Columns: ATE RMSE" in head and "NEES mean" in head and "overconfident" in head
+    assert "- records:" not in head
+    res.stats["events_out_of_order"] = 50
+    head = describe_run("run.log", [res], load_config(), {}, reader={"skipped": 0})
+    assert "- records: 50 events dropped as too late to put back in order\n" in head
     md = markdown_table(
         [
             _row("ekf", 30.0),

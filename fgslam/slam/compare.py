@@ -55,7 +55,9 @@ def _run_mode(
             yield ev
 
     results = run_backends(events(), cfg, backends, sensors)
-    return results, {"events": dict(counts), "scans": sample.scans, "config": cfg}
+    problems = getattr(reader, "problems", None)
+    summary = reader.summary() if isinstance(problems, list) else problems.summary()
+    return results, {"events": dict(counts), "scans": sample.scans, "reader": summary}
 
 
 def compare(
@@ -108,7 +110,9 @@ def compare(
         )
         rows.append(rep)
     safeio.write_json(out / "comparison.json", rows)
-    header = describe_run(str(log), results, cfg, info.get("events", {}), truth_kind)
+    header = describe_run(
+        str(log), results, cfg, info.get("events", {}), truth_kind, info.get("reader")
+    )
     safeio.write_text(out / "comparison.md", header + markdown_table(rows))
     plot_comparison(results, out / "comparison.png", world=world)
     return rows
@@ -124,9 +128,11 @@ def describe_run(
     cfg: RobotConfig,
     events: dict[str, int],
     truth_kind: str = "ground truth",
+    reader: dict[str, Any] | None = None,
 ) -> str:
     """The head of comparison.md: what was run on what (log, duration, path length, sensors
-    and how much of each the log holds) and the legend of the table's columns."""
+    and how much of each the log holds, records the reader skipped or found out of order and
+    the pipeline dropped) and the legend of the table's columns."""
     res = results[0] if results else None
     duration = res.log_duration if res else 0.0
     if res is not None and res.has_truth:
@@ -147,7 +153,8 @@ def describe_run(
         f"- laser: {n['LaserScan']} scans of {las.n_beams} beams over {las.fov_deg:g} deg, "
         f"max range {las.max_range:g} m\n"
         f"- sonar: {n['SonarReading']} readings from {len(cfg.sonar.arrays)} arrays ({arrays})\n"
-        f"- odometry: {n['OdometryEvent']} samples; {n['TruthPose']} poses of {truth_kind}\n\n"
+        f"- odometry: {n['OdometryEvent']} samples; {n['TruthPose']} poses of {truth_kind}\n"
+        f"{_input_line(reader or {}, res)}\n"
         "Columns: ATE RMSE / max: position error of the keyframe poses against the truth after "
         "an SE(2) alignment (m); final error: position error of the last pose, unaligned (m); "
         "NEES mean: mean normalised estimation error squared of the poses, expected near its "
@@ -156,6 +163,21 @@ def describe_run(
         "time over wall time; latency p95: 95th percentile of the time a keyframe takes (ms). "
         "'-': not available (no truth, or no pose covariances).\n\n"
     )
+
+
+def _input_line(reader: dict[str, Any], res: SlamResult | None) -> str:
+    """'- records: ...' when the reader skipped records or found stamps going backwards, or
+    the pipeline dropped events as too late; empty otherwise."""
+    dropped = int(res.stats.get("events_out_of_order", 0)) if res is not None else 0
+    parts = []
+    if reader.get("skipped"):
+        parts.append(f"{reader['skipped']} skipped ({reader.get('skipped_by_reason', {})})")
+    back = reader.get("timestamps_backwards") or {}
+    if back:
+        parts.append(f"stamps going backwards: {back}")
+    if dropped:
+        parts.append(f"{dropped} events dropped as too late to put back in order")
+    return f"- records: {'; '.join(parts)}\n" if parts else ""
 
 
 def markdown_table(rows: list[dict[str, Any]]) -> str:
