@@ -439,10 +439,12 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 def _cmd_replay(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from fgslam.config import load_config
-    from fgslam.ports import replay_to_log
+    from fgslam.config import load_config, override_config
+    from fgslam.ports import replay_to_log, session_config
 
-    cfg = load_config(args.config) if args.config else None
+    cfg = None
+    if args.config:  # key by key over the recorded configuration (or the built-in one)
+        cfg = override_config(session_config(args.raw_dir) or load_config(), args.config)
     with tqdm(desc="replaying", unit=" events", disable=None, leave=False) as bar:
         try:
             res = replay_to_log(args.raw_dir, args.out, cfg, progress=lambda _t: bar.update())

@@ -352,3 +352,29 @@ def test_dev_null_is_written_in_place_never_replaced(tiny_log, capsys):
     assert f"wrote {os.devnull}:" in capsys.readouterr().out
     assert stat.S_ISCHR(os.stat(os.devnull).st_mode)
     assert not any(n.startswith((".tmp-", "null.")) for n in os.listdir(Path(os.devnull).parent))
+
+
+def test_replay_config_overrides_the_recorded_one(tmp_path, monkeypatch):
+    import dataclasses
+
+    import fgslam.ports as ports
+    from fgslam.config import load_config
+
+    rec = load_config()
+    rec = dataclasses.replace(rec, laser=dataclasses.replace(rec.laser, n_beams=181))
+    raw = tmp_path / "raw"
+    raw.mkdir()
+    session = {"format": ports.SESSION_FORMAT, "config": rec.to_dict()}
+    (raw / ports.SESSION_FILE).write_text(json.dumps(session))
+    k = tmp_path / "k.toml"
+    k.write_text("[odometry]\nk_r = 0.2\n")
+    seen = {}
+
+    def fake(raw_dir, out, cfg, progress=None):
+        seen["cfg"] = cfg
+        raise SystemExit(0)
+
+    monkeypatch.setattr(ports, "replay_to_log", fake)
+    with pytest.raises(SystemExit):
+        main(["replay", str(raw), "--config", str(k), "--out", str(tmp_path / "x.log")])
+    assert seen["cfg"].laser.n_beams == 181 and seen["cfg"].odometry.k_r == 0.2
