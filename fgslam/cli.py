@@ -953,6 +953,9 @@ def _check_outputs(args: argparse.Namespace) -> None:
     out = getattr(args, "out", None)
     if kind is None or out is None:
         return
+    log = getattr(args, "log", None)
+    if log is not None and not Path(log).exists():
+        return  # the command says so; no output folder is created for nothing
     inputs = [getattr(args, k, None) for k in INPUT_OPTIONS]
     inputs.append(getattr(args, "raw_dir", None))
     if args.command == "plot-log":

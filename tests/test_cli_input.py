@@ -73,6 +73,12 @@ def test_bad_outputs_are_one_line_errors_before_any_work(tiny_log, tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file", "copy.log"]
 
 
+def test_missing_log_creates_no_output_folder(tmp_path, capsys):
+    assert main(["run", str(tmp_path / "nope.log"), "--out", str(tmp_path / "out")]) == 2
+    assert "nope.log" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
 def test_run_checks_its_output_folder_before_the_run(tiny_log, tmp_path, monkeypatch, capsys):
     import fgslam.slam.runner as runner
 
