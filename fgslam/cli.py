@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
+from collections import Counter
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -25,11 +27,34 @@ Typical use:
   fgslam compare run.log.gz --out cmp/          EKF, iSAM2, batch x fused, laser, sonar
   fgslam demo                                   simulate the built-in run and compare
   fgslam evaluate out/trajectory.tum --reference ref.tum   ATE, RPE, NEES
+  fgslam export-reference run.log.gz --out ref.tum   truth/reference poses as TUM (for evo)
   fgslam emulate --speed 4 --link-dir /tmp/robot   emulated devices on pseudo-terminals
   fgslam online --laser PORT --sonar PORT --sonar PORT --odom PORT --out DIR   live SLAM
 
 Frames follow REP-103 (x forward, y left, yaw counter-clockwise); units are SI.
 """
+
+CONFIG_OVER_LOG_HELP = (
+    "TOML file whose keys override the log's robot configuration (or the built-in one for "
+    "logs that carry none), key by key; it must not contradict the log (beam count, sonar "
+    "arrays)"
+)
+
+# What each command writes with --out (a file or a folder), checked before any work starts,
+# and the options naming its inputs (an input is never an output).
+OUTPUT_KINDS = {
+    "run": "dir",
+    "compare": "dir",
+    "demo": "dir",
+    "online": "dir",
+    "simulate": "file",
+    "convert": "file",
+    "replay": "file",
+    "plot-log": "file",
+    "evaluate": "file",
+    "export-reference": "file",
+}
+INPUT_OPTIONS = ("log", "config", "world", "trajectory", "reference", "covariances", "map")
 
 
 def _cmd_config(args: argparse.Namespace) -> int:
@@ -100,19 +125,11 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def _cmd_plot_log(args: argparse.Namespace) -> int:
-    from fgslam.logfile import LogReader
     from fgslam.plotting import plot_log
-    from fgslam.sim.world import BUILTIN_WORLDS, load_world
+    from fgslam.sim.world import load_world
 
-    world = None
-    if args.world:
-        world = load_world(args.world)
-    else:
-        with LogReader(args.log) as reader:
-            name = reader.world
-        if name in BUILTIN_WORLDS:
-            world = load_world(name)
-    info = plot_log(args.log, args.out, world, args.scan_time)
+    world = load_world(args.world) if args.world else None
+    info = plot_log(args.log, args.out, world, args.scan_time, _reader_options(args))
     extra = ""
     if "odometry_final_error_m" in info:
         extra = f"; odometry-only final position error {info['odometry_final_error_m']:.2f} m"
@@ -121,6 +138,28 @@ def _cmd_plot_log(args: argparse.Namespace) -> int:
         f"{extra}"
     )
     return 0
+
+
+def _image_path(out: str, log: str) -> str:
+    """The file ``plot-log --out`` writes: OUT/<log name>.png for a folder, OUT.png without a
+    known image suffix; an unknown image format is refused."""
+    from matplotlib.backend_bases import FigureCanvasBase
+
+    from fgslam.safeio import is_special
+
+    p = Path(out)
+    if is_special(p):
+        return out  # /dev/null: written as PNG in place
+    if p.is_dir() or out.endswith(("/", os.sep)):
+        name = Path(log).name.split(".")[0] or "log"
+        return str(p / f"{name}.png")
+    suffix = p.suffix.lower().lstrip(".")
+    if not suffix:
+        return f"{out}.png"
+    if suffix not in FigureCanvasBase.get_supported_filetypes():
+        known = ", ".join(sorted(FigureCanvasBase.get_supported_filetypes()))
+        raise UserError(f"--out {out}: unknown image format '.{suffix}' (known: {known})")
+    return out
 
 
 def _log_duration(path: str) -> float | None:
@@ -132,13 +171,12 @@ def _log_duration(path: str) -> float | None:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
-    from fgslam.config import load_config
     from fgslam.readers import open_log
     from fgslam.slam.outputs import write_outputs
     from fgslam.slam.runner import run_slam
 
     reader = open_log(args.log, **_reader_options(args))
-    cfg = load_config(args.config) if args.config else reader.config
+    cfg = _run_config(reader, args.config, args.log)
     d = reader.meta.get("duration")
     total = float(d) if isinstance(d, int | float) else None
     bar = _progress_bar(f"{args.backend}/{args.sensors}")
@@ -150,44 +188,179 @@ def _cmd_run(args: argparse.Namespace) -> int:
         if total:
             bar(min(t - t_first[0], total), total)
 
+    tap = _Tap(reader)
     try:
-        res = run_slam(reader, cfg, args.backend, args.sensors, progress)
+        res = run_slam(tap, cfg, args.backend, args.sensors, progress)
     finally:
         bar.close()
-    rep = write_outputs(res, args.out, reader.meta.get("true_map"))
-    if reader.skipped:
-        print(f"skipped {reader.skipped} bad records: {dict(reader.skipped_by_reason)}")
-    _reader_notes(reader, rep, args.out)
+    extra, notes = _input_notes(reader, tap, [res])
+    extra["config_source"] = cfg.source
+    rep = write_outputs(
+        res,
+        args.out,
+        reader.meta.get("true_map"),
+        extra=extra,
+        world=_log_world(reader),
+        scans=tap.sample.scans,
+        cfg=cfg,
+    )
+    for line in notes:
+        print(line)
     _print_summary(rep, args.out)
-    return 0
+    return _report_partial(rep, args.out)
+
+
+class _Tap:
+    """Passes a reader's events on, counting them and keeping a thinned sample of the laser
+    scans for map.png."""
+
+    def __init__(self, reader) -> None:
+        from fgslam.slam.outputs import ScanSample
+
+        self.reader = reader
+        self.events = 0
+        self.by_type: Counter = Counter()
+        self.sample = ScanSample()
+
+    def __iter__(self):
+        add = self.sample.add
+        count = self.by_type
+        for ev in self.reader:
+            self.events += 1
+            count[type(ev).__name__] += 1
+            add(ev)
+            yield ev
+
+
+def _run_config(reader, config: str | None, log: str):
+    """The log's configuration (or the built-in one for logs without) with the keys of
+    ``--config`` overriding it; refused where it contradicts the log."""
+    from fgslam.config import check_against_log, override_config
+
+    cfg = override_config(reader.config, config)
+    check_against_log(cfg, reader.config, str(log))
+    return cfg
+
+
+def _log_world(reader):
+    """The simulator's world of a native log whose world is built in, else None."""
+    from fgslam.sim.world import BUILTIN_WORLDS, load_world
+
+    name = getattr(reader, "world", None)
+    return load_world(name) if name in BUILTIN_WORLDS else None
+
+
+WARN_FRACTION = 0.01  # records not used (skipped, dropped) beyond this fraction: a warning
+_STREAM_TYPES = {
+    "odometry": "OdometryEvent",
+    "laser": "LaserScan",
+    "sonar": "SonarReading",
+    "truth": "TruthPose",
+}
+
+
+def _input_notes(reader, tap: _Tap, results: list) -> tuple[dict, list[str]]:
+    """What happened to the input's records (report.json keys, console lines): read, skipped
+    as bad, stamped earlier than the record before them, put back in order or dropped as too
+    late by the pipeline; a warning when more than WARN_FRACTION of them were not used. Where
+    the comparison trajectory is a reference rather than ground truth, that too."""
+    problems = getattr(reader, "problems", None)
+    if problems is not None and not isinstance(problems, list):
+        summary = problems.summary()
+    elif hasattr(reader, "summary"):
+        summary = reader.summary()
+    else:
+        summary = {}
+    stats = results[0].stats if results else {}
+    dropped = int(stats.get("events_out_of_order", 0))
+    reordered = int(stats.get("events_reordered", 0))
+    by_reason = dict(summary.get("skipped_by_reason", {}))
+    # records of types a foreign reader does not use (CARMEN NEFF, ...) are not data lost
+    foreign = problems is not None and not isinstance(problems, list)
+    ignored = {k: n for k, n in by_reason.items() if foreign and k.startswith("unknown record")}
+    skipped = int(summary.get("skipped", 0)) - sum(ignored.values())
+    back = summary.get("timestamps_backwards", {})
+    total = tap.events + skipped
+    info = {
+        "records": total,
+        "events_read": tap.events,
+        "skipped": skipped,
+        "skipped_by_reason": {k: n for k, n in by_reason.items() if k not in ignored},
+        "ignored_record_types": ignored,
+        "timestamps_backwards": back,
+        "events_put_back_in_order": reordered,
+        "events_dropped_out_of_order": dropped,
+    }
+    if summary.get("problems"):
+        info["problems"] = summary["problems"]
+    notes = []
+    if skipped:
+        notes.append(f"skipped {skipped} bad records: {info['skipped_by_reason']}")
+    if ignored:
+        notes.append(f"ignored records of types not used: {ignored}")
+    if back or dropped or reordered:
+        by = ", ".join(f"{n} {k}" for k, n in sorted(back.items())) or "none"
+        notes.append(
+            f"timestamps going backwards: {by}; the pipeline put {reordered} events back in "
+            f"order and dropped {dropped} (more than its reorder window late)"
+        )
+    lost = skipped + dropped
+    if total and lost > WARN_FRACTION * total:
+        msg = (
+            f"{lost} of {total} records ({100 * lost / total:.1f} %) were not used "
+            f"({skipped} bad, {dropped} out of time order): the results cover only part "
+            "of the log"
+        )
+        info["warning"] = msg
+        notes.append(f"WARNING: {msg}")
+    elif not foreign:  # a few lost records of one kind (odometry) can matter more than
+        # their number says; foreign readers carry or drop such records themselves and say so
+        for stream, n in sorted(back.items()):
+            of = tap.by_type.get(_STREAM_TYPES.get(stream, ""), 0)
+            if of and n > WARN_FRACTION * of:
+                msg = (
+                    f"{n} of {of} {stream} records ({100 * n / of:.1f} %) are stamped earlier "
+                    "than the one before them: the results may be wrong"
+                )
+                info["warning"] = msg
+                notes.append(f"WARNING: {msg}")
+                break
+    extra: dict = {"input": info}
+    kind = getattr(reader, "reference_kind", None)
+    if kind:
+        extra["truth_source"] = kind
+        if kind == "reference":
+            notes.append("note: ATE is against the log's reference trajectory, not ground truth")
+    if problems is not None and not isinstance(problems, list):
+        extra["reader"] = summary  # a foreign reader's own account
+    return extra, notes
+
+
+def _report_partial(rep: dict, out: str) -> int:
+    """Exit status of a run: 1 when its backend failed mid-run (outputs written up to the
+    last good keyframe), with a message saying so; 0 otherwise."""
+    part = rep.get("partial")
+    if not part:
+        return 0
+    t = part.get("t")
+    when = f" (t = {t:.2f} s)" if isinstance(t, int | float) else ""
+    print(
+        f"fgslam: error: {rep['backend']} failed at keyframe {part.get('keyframe')}{when}: "
+        f"{part.get('error')}; the outputs in {out} hold the run up to the last good "
+        "keyframe (report.json: partial)",
+        file=sys.stderr,
+    )
+    return 1
 
 
 def _reader_options(args: argparse.Namespace) -> dict:
     """Options of the foreign-log readers (fgslam.readers.open_log) from the command line."""
-    opts: dict = {"tolerant": args.tolerant, "format": args.format}
+    opts: dict = {"tolerant": getattr(args, "tolerant", False), "format": args.format}
     for key in ("scan_topic", "odom_topic", "range_topics", "carmen_mode"):
         value = getattr(args, key, None)
         if value:
             opts["mode" if key == "carmen_mode" else key] = value
     return opts
-
-
-def _reader_notes(reader, rep: dict, out: str) -> None:
-    """What a foreign-log reader found (records skipped, stamps going backwards), and where
-    the comparison trajectory is a reference rather than ground truth, say so in the report."""
-    problems = getattr(reader, "problems", None)
-    if problems is not None and not isinstance(problems, list):
-        back = dict(problems.backwards)
-        if back:
-            print(f"timestamps going backwards (kept in order, dropped or carried): {back}")
-        rep["reader"] = problems.summary()
-    kind = getattr(reader, "reference_kind", None)
-    if kind:
-        rep["truth_source"] = kind
-        if kind == "reference":
-            print("note: ATE is against the log's reference trajectory, not ground truth")
-    if problems is not None or kind:
-        (Path(out) / "report.json").write_text(json.dumps(rep, indent=2))
 
 
 def _print_summary(rep: dict, out: str) -> None:
@@ -207,15 +380,21 @@ def _print_summary(rep: dict, out: str) -> None:
 
 
 def _cmd_compare(args: argparse.Namespace) -> int:
-    from fgslam.slam.compare import compare
-
-    rows = _compare(args.log, args.out, args.config)
+    rows = _compare(args.log, args.out, args.config, _reader_options(args))
     print((Path(args.out) / "comparison.md").read_text(), end="")
     print(f"wrote {args.out}/comparison.json, comparison.md, comparison.png and one folder per run")
-    return 0 if rows and compare else 1
+    partial = [f"{r['backend']}/{r['sensors']}" for r in rows if r.get("partial")]
+    if partial:
+        print(
+            f"fgslam compare: error: {', '.join(partial)} failed mid-run: their outputs hold "
+            "the run up to the last good keyframe (report.json: partial)",
+            file=sys.stderr,
+        )
+        return 1
+    return 0 if rows else 1
 
 
-def _compare(log: str, out: str, config: str | None) -> list:
+def _compare(log: str, out: str, config: str | None, options: dict | None = None) -> list:
     from tqdm import tqdm
 
     from fgslam.slam.compare import compare
@@ -228,7 +407,7 @@ def _compare(log: str, out: str, config: str | None) -> list:
         disable=None,
         leave=False,
     ) as bar:
-        return compare(log, out, config, on_done=lambda _res: bar.update(1))
+        return compare(log, out, config, on_done=lambda _res: bar.update(1), options=options)
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -260,10 +439,12 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 def _cmd_replay(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from fgslam.config import load_config
-    from fgslam.ports import replay_to_log
+    from fgslam.config import load_config, override_config
+    from fgslam.ports import replay_to_log, session_config
 
-    cfg = load_config(args.config) if args.config else None
+    cfg = None
+    if args.config:  # key by key over the recorded configuration (or the built-in one)
+        cfg = override_config(session_config(args.raw_dir) or load_config(), args.config)
     with tqdm(desc="replaying", unit=" events", disable=None, leave=False) as bar:
         try:
             res = replay_to_log(args.raw_dir, args.out, cfg, progress=lambda _t: bar.update())
@@ -364,14 +545,13 @@ def _add_reader_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _cmd_convert(args: argparse.Namespace) -> int:
-    from collections import Counter
 
     from fgslam.logfile import LogWriter
     from fgslam.readers import open_log
 
     reader = open_log(args.log, **_reader_options(args))
     counts: Counter = Counter()
-    try:
+    try:  # the log appears at --out only when complete (LogWriter writes a temporary file)
         with LogWriter(args.out, reader.config, reader.world, meta=reader.meta) as w:
             for ev in reader:
                 w.write(ev)
@@ -381,13 +561,11 @@ def _cmd_convert(args: argparse.Namespace) -> int:
     kinds = ", ".join(f"{n} {k}" for k, n in sorted(counts.items())) or "no events"
     print(f"wrote {args.out}: {kinds}")
     problems = getattr(reader, "problems", None)
-    if problems is not None and not isinstance(problems, list):
-        if problems.skipped:
-            print(f"skipped: {dict(problems.skipped_by_reason)}")
-        if problems.backwards:
-            print(f"timestamps going backwards: {dict(problems.backwards)}")
-    elif reader.skipped:
-        print(f"skipped {reader.skipped} bad records: {dict(reader.skipped_by_reason)}")
+    summary = reader.summary() if isinstance(problems, list) else problems.summary()
+    if summary["skipped"]:
+        print(f"skipped {summary['skipped']} bad records: {summary['skipped_by_reason']}")
+    if summary["timestamps_backwards"]:
+        print(f"timestamps going backwards (kept as they are): {summary['timestamps_backwards']}")
     kind = getattr(reader, "reference_kind", None)
     if kind == "reference":
         print("truth records hold the log's reference poses (not ground truth)")
@@ -400,8 +578,38 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     rep = evaluate_command(args)
     print(rep.pop("_text"))
     if args.out:
-        Path(args.out).write_text(json.dumps(rep, indent=2))
+        from fgslam.safeio import write_json
+
+        write_json(args.out, rep)
         print(f"wrote {args.out}")
+    return 0
+
+
+def _cmd_export_reference(args: argparse.Namespace) -> int:
+    from fgslam.evaluation import write_tum
+    from fgslam.events import TruthPose
+    from fgslam.readers import open_log
+    from fgslam.safeio import atomic_path
+
+    reader = open_log(args.log, **_reader_options(args))
+    t: list[float] = []
+    poses: list[tuple[float, float, float]] = []
+    backwards = 0
+    for ev in reader:
+        if isinstance(ev, TruthPose):
+            if t and ev.t < t[-1]:
+                backwards += 1
+                continue
+            t.append(ev.t)
+            poses.append((ev.x, ev.y, ev.theta))
+    if not t:
+        raise UserError(f"{args.log}: the log has no truth or reference poses")
+    kind = getattr(reader, "reference_kind", None) or "ground truth"
+    with atomic_path(args.out) as tmp:
+        write_tum(tmp, t, poses)
+    print(f"wrote {args.out}: {len(t)} poses ({kind}) over {t[-1] - t[0]:.1f} s")
+    if backwards:
+        print(f"left out {backwards} poses stamped earlier than the one before them")
     return 0
 
 
@@ -459,12 +667,19 @@ def build_parser() -> argparse.ArgumentParser:
         help="draw a log: world, true and odometry paths, a scan with sonar",
         description=(
             "Draw a log as a PNG: the world (when the log's world is built in, or --world), the "
-            "true path, the odometry-only path, and one laser scan with the sonar readings of "
-            "the 6 s around it, placed with the true poses."
+            "true (or reference) path, the odometry-only path, and one laser scan with the "
+            "sonar readings of the 6 s around it, placed with the true poses. Any log `run` "
+            "reads."
         ),
     )
-    p.add_argument("log", help="native log file (.log or .log.gz)")
-    p.add_argument("--out", required=True, metavar="FILE.png", help="image to write")
+    p.add_argument("log", help="log: fgslam, CARMEN (.gz or not) or a ROS 1/2 bag")
+    _add_reader_arguments(p)
+    p.add_argument(
+        "--out",
+        required=True,
+        metavar="FILE.png",
+        help="image to write ('.png' added without a suffix; a folder: FOLDER/<log>.png)",
+    )
     p.add_argument("--world", help="world JSON file, when the log's world is not built in")
     p.add_argument("--scan-time", type=float, help="time (s) of the scan to draw (default: middle)")
     p.set_defaults(func=_cmd_plot_log)
@@ -493,9 +708,7 @@ def build_parser() -> argparse.ArgumentParser:
         default="fused",
         help="laser and sonar fused (the paper), laser only, or sonar only (default fused)",
     )
-    p.add_argument(
-        "--config", metavar="ROBOT.toml", help="robot configuration (default: the log's)"
-    )
+    p.add_argument("--config", metavar="ROBOT.toml", help=CONFIG_OVER_LOG_HELP)
     p.add_argument(
         "--tolerant", action="store_true", help="skip malformed records instead of stopping"
     )
@@ -548,15 +761,31 @@ def build_parser() -> argparse.ArgumentParser:
             "Run EKF, iSAM2 and batch smoothing in fused, laser-only and sonar-only modes on the "
             "same log (the front end runs once per mode), write each run's outputs into "
             "DIR/<backend>-<sensors>/, and comparison.json, comparison.md and comparison.png "
-            "(trajectories and errors over time) into DIR."
+            "(trajectories and errors over time) into DIR. Any log `run` reads."
         ),
     )
-    p.add_argument("log", help="native log file (.log or .log.gz)")
-    p.add_argument(
-        "--config", metavar="ROBOT.toml", help="robot configuration (default: the log's)"
-    )
+    p.add_argument("log", help="log: fgslam, CARMEN (.gz or not) or a ROS 1/2 bag")
+    _add_reader_arguments(p)
+    p.add_argument("--config", metavar="ROBOT.toml", help=CONFIG_OVER_LOG_HELP)
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")
     p.set_defaults(func=_cmd_compare)
+
+    p = sub.add_parser(
+        "export-reference",
+        help="write a log's truth or reference poses as a TUM trajectory (for evo)",
+        description=(
+            "Write the ground truth of a simulated log, or the reference poses of a corrected "
+            "CARMEN log, as a TUM trajectory (timestamp x y z qx qy qz qw), e.g. for evo: "
+            "`evo_ape tum ref.tum out/trajectory.tum`."
+        ),
+    )
+    p.add_argument("log", help="log: fgslam, CARMEN (.gz or not) or a ROS 1/2 bag")
+    _add_reader_arguments(p)
+    p.add_argument(
+        "--tolerant", action="store_true", help="skip malformed records instead of stopping"
+    )
+    p.add_argument("--out", required=True, metavar="FILE.tum", help="TUM file to write")
+    p.set_defaults(func=_cmd_export_reference)
 
     p = sub.add_parser(
         "demo",
@@ -716,15 +945,51 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _check_outputs(args: argparse.Namespace) -> None:
+    """Refuse an --out that cannot be written or that is one of the inputs, before any work."""
+    from fgslam.safeio import check_output_dir, check_output_file
+
+    kind = OUTPUT_KINDS.get(args.command)
+    out = getattr(args, "out", None)
+    if kind is None or out is None:
+        return
+    log = getattr(args, "log", None)
+    if log is not None and not Path(log).exists():
+        return  # the command says so; no output folder is created for nothing
+    inputs = [getattr(args, k, None) for k in INPUT_OPTIONS]
+    inputs.append(getattr(args, "raw_dir", None))
+    if args.command == "plot-log":
+        args.out = out = _image_path(out, args.log)
+    if kind == "dir":
+        check_output_dir(out, inputs)
+    else:
+        check_output_file(out, inputs)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    try:
+        return _main(argv)
+    except BrokenPipeError:
+        # the reader of our output went away (`fgslam ... | head`): no traceback, and none
+        # at exit either when Python flushes stdout
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 141
+
+
+def _main(argv: Sequence[str] | None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     func: Callable[[argparse.Namespace], int] | None = getattr(args, "func", None)
     if func is None:
         parser.print_help()
+        sys.stdout.flush()
         return 0
     try:
-        return func(args)
+        _check_outputs(args)
+        status = func(args)
+        sys.stdout.flush()  # a closed pipe shows here, not at exit
+        return status
     except UserError as exc:
         print(f"fgslam {args.command}: error: {exc}", file=sys.stderr)
         return 2

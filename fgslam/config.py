@@ -182,6 +182,25 @@ _NON_NEGATIVE = {
 }
 
 
+# Plausibility bounds (absolute value) of numbers that are surely a mistake beyond them; every
+# other number must stay within _MAX_ANY. A 1e20 encoder would make every tick 0 m.
+_MAXIMUM = {
+    "odometry.wheelbase": 100.0,
+    "odometry.wheel_radius_right": 10.0,
+    "odometry.wheel_radius_left": 10.0,
+    "odometry.encoder_steps_per_rev": 1e9,
+    "odometry.sample_period": 60.0,
+    "laser.n_beams": 100000,
+    "laser.fov_deg": 360.0,
+    "laser.max_range": 1e6,
+    "laser.baud_rate": 1e10,
+    "sonar.sigma_bearing_deg": 180.0,
+    "sonar.beam_half_width_deg": 180.0,
+    "sonar.plane_incidence_deg": 90.0,
+}
+_MAX_ANY = 1e9
+
+
 def _type_name(tp: Any) -> str:
     origin = typing.get_origin(tp)
     if origin is tuple:
@@ -240,6 +259,9 @@ def _convert(tp: Any, value: Any, path: str, src: str) -> Any:
         raise ConfigError(f"{where}: expected a positive number, got {value!r}")
     if path in _NON_NEGATIVE and out < 0:
         raise ConfigError(f"{where}: expected a non-negative number, got {value!r}")
+    top = _MAXIMUM.get(path, _MAX_ANY)
+    if abs(out) > top:
+        raise ConfigError(f"{where}: {value!r} is not plausible (expected at most {top:g})")
     return out
 
 
@@ -289,6 +311,11 @@ def load_config(path: str | Path | None = None) -> RobotConfig:
     base = _read_toml(default_config_text(), DEFAULT_CONFIG_NAME)
     if path is None:
         return from_dict(base, "<default>")
+    return from_dict(_merge(base, _user_file(path)), str(path))
+
+
+def _user_file(path: str | Path) -> dict[str, Any]:
+    """The keys of a user's TOML file, unknown keys reported against that file."""
     path = Path(path)
     try:
         text = path.read_text("utf-8")
@@ -297,9 +324,31 @@ def load_config(path: str | Path | None = None) -> RobotConfig:
     except UnicodeDecodeError:
         raise ConfigError(f"{path}: not a UTF-8 text file") from None
     user = _read_toml(text, str(path))
-    # Unknown keys must be reported against the user's file, not the merged result.
     _check_known_keys(user, RobotConfig, "", str(path))
-    return from_dict(_merge(base, user), str(path))
+    return user
+
+
+def override_config(base: RobotConfig, path: str | Path | None) -> RobotConfig:
+    """``base`` (e.g. a log's configuration) with the keys of the TOML file at ``path``
+    replaced, key by key (``[[sonar.arrays]]`` replaces the whole list); ``base`` if no path."""
+    if path is None:
+        return base
+    return from_dict(_merge(base.to_dict(), _user_file(path)), str(path))
+
+
+def check_against_log(cfg: RobotConfig, log_cfg: RobotConfig, log_name: str) -> None:
+    """A configuration used on a log must not contradict the data: the same number of laser
+    beams, at least as many sonar arrays. One-line :class:`ConfigError` naming both."""
+    if cfg.laser.n_beams != log_cfg.laser.n_beams:
+        raise ConfigError(
+            f"{cfg.source}: laser.n_beams = {cfg.laser.n_beams} contradicts the log {log_name} "
+            f"({log_cfg.laser.n_beams} beams per scan)"
+        )
+    if len(cfg.sonar.arrays) < len(log_cfg.sonar.arrays):
+        raise ConfigError(
+            f"{cfg.source}: {len(cfg.sonar.arrays)} sonar arrays, but the log {log_name} has "
+            f"{len(log_cfg.sonar.arrays)}"
+        )
 
 
 def _check_known_keys(data: dict[str, Any], cls: type, path: str, src: str) -> None:

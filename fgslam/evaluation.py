@@ -108,12 +108,42 @@ def write_tum(path: str | Path, t: ArrayLike, poses: ArrayLike) -> None:
             )
 
 
+TUM_FIELDS = ("timestamp", "tx", "ty", "tz", "qx", "qy", "qz", "qw")
+TUM_MAX_STAMP = 1e10  # s; beyond, not a time (the year 2286 as Unix time)
+TUM_MAX_POSITION = 1e9  # m; beyond, not a position
+
+
 def read_tum(path: str | Path) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Times and (x, y, yaw) of a TUM trajectory (yaw from the quaternion)."""
-    data = np.loadtxt(path, comments="#", ndmin=2)
-    if data.shape[1] != 8:
-        raise ValueError(f"{path}: expected 8 columns (timestamp x y z qx qy qz qw)")
-    qx, qy, qz, qw = data[:, 4], data[:, 5], data[:, 6], data[:, 7]
+    """Times and (x, y, yaw) of a TUM trajectory (yaw from the quaternion, normalised).
+
+    ValueError naming the line and field for a wrong column count, a non-number, a
+    non-finite or absurd value (stamp beyond 1e10 s, position beyond 1e9 m) or a quaternion of
+    zero norm."""
+    rows = []
+    with open(path, encoding="utf-8", errors="replace") as fh:
+        for lineno, line in enumerate(fh, 1):
+            tok = line.split()
+            if not tok or tok[0].startswith("#"):
+                continue
+            if len(tok) != 8:
+                raise ValueError(
+                    f"line {lineno}: expected 8 columns (timestamp x y z qx qy qz qw), "
+                    f"got {len(tok)}"
+                )
+            try:
+                row = [float(x) for x in tok]
+            except ValueError:
+                raise ValueError(f"line {lineno}: not a number in {line.strip()[:60]!r}") from None
+            for name, v in zip(TUM_FIELDS, row, strict=True):
+                top = TUM_MAX_STAMP if name == "timestamp" else TUM_MAX_POSITION
+                if not math.isfinite(v) or (name[0] != "q" and abs(v) > top):
+                    raise ValueError(f"line {lineno}: field {name}: {v!r} is not plausible")
+            if math.hypot(*row[4:]) < 1e-9:
+                raise ValueError(f"line {lineno}: quaternion (qx qy qz qw) has zero norm")
+            rows.append(row)
+    data = np.array(rows, dtype=float).reshape(-1, 8)
+    q = data[:, 4:] / np.linalg.norm(data[:, 4:], axis=1, keepdims=True)
+    qx, qy, qz, qw = q.T
     yaw = np.arctan2(2 * (qw * qz + qx * qy), 1 - 2 * (qy**2 + qz**2))
     return data[:, 0], np.column_stack([data[:, 1], data[:, 2], yaw])
 

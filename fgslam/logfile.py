@@ -9,12 +9,15 @@ memory and reports every problem as a one-line :class:`LogFormatError` naming fi
 
 from __future__ import annotations
 
+import contextlib
 import gzip
 import io
 import json
 import math
 import operator
+import os
 import zlib
+from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass
 from os import PathLike
@@ -33,12 +36,16 @@ from fgslam.events import (
     SonarReading,
     TruthPose,
 )
+from fgslam.safeio import is_special, temp_path
 
 FORMAT_NAME = "FGSLAM-LOG"
 FORMAT_VERSION = 1
 GZIP_MAGIC = b"\x1f\x8b"
 MAX_LINE_BYTES = 1 << 23  # longer lines are bad records (bounds memory on corrupt input)
 MAX_PROBLEMS = 20  # messages kept in LogReader.problems in tolerant mode
+# Stamps beyond this (s) are not times (1e10 s is the year 2286 as Unix time); such a record
+# would make every later one look late and be dropped.
+MAX_ABS_STAMP = 1e10
 KIND_LETTERS = {"plane": "P", "corner": "C", "edge": "E"}
 LETTER_KINDS = {v: k for k, v in KIND_LETTERS.items()}
 HEADER_TAGS = ("CONFIG", "WORLD", "META")
@@ -119,6 +126,8 @@ def _fmt(x: Any, what: str) -> str:
 def format_record(event: Event) -> str:
     """One record line (without newline) for ``event``; ValueError if it cannot be represented."""
     t = _fmt(event.t, "timestamp")
+    if abs(event.t) > MAX_ABS_STAMP:
+        raise ValueError(f"timestamp {event.t!r} is not a plausible time (|t| > {MAX_ABS_STAMP:g})")
     if isinstance(event, OdometryEvent):
         return f"O {t} {operator.index(event.ticks_right)} {operator.index(event.ticks_left)}"
     if isinstance(event, LaserScan):
@@ -151,7 +160,9 @@ class LogWriter:
     """Writes a log incrementally: the header on construction, one line per :meth:`write`.
 
     A ``.gz`` name gives a gzip file; output is deterministic (byte-identical for the same
-    arguments and events). Use as a context manager, or call :meth:`close`.
+    arguments and events). The log is written to a temporary file in the same folder and
+    renamed to ``path`` by :meth:`close`, so ``path`` never holds a partial log; leaving the
+    context manager by an exception (or :meth:`abort`) deletes the temporary file instead.
     """
 
     def __init__(
@@ -167,7 +178,9 @@ class LogWriter:
         self.config = config
         self._n_beams = config.laser.n_beams
         self._n_arrays = len(config.sonar.arrays)
-        self._f = open_text(path, "w")
+        self._tmp = path if is_special(path) else temp_path(path)
+        self._f = open_text(self._tmp, "w")
+        self._done = False
         self._f.write("\n".join(lines) + "\n")
 
     def write(self, event: Event) -> None:
@@ -185,13 +198,41 @@ class LogWriter:
         self._f.flush()
 
     def close(self) -> None:
-        self._f.close()
+        """Finish the log: flush, close and rename it into place."""
+        if self._done:
+            return
+        self._done = True
+        try:
+            self._f.close()
+            if self._tmp != self.path:
+                os.replace(self._tmp, self.path)
+        except BaseException:
+            self._discard()
+            raise
+
+    def abort(self) -> None:
+        """Give up: delete the temporary file, leave ``path`` as it was."""
+        if self._done:
+            return
+        self._done = True
+        try:
+            self._f.close()
+        finally:
+            self._discard()
+
+    def _discard(self) -> None:
+        if self._tmp != self.path:
+            with contextlib.suppress(OSError):
+                os.unlink(self._tmp)
 
     def __enter__(self) -> LogWriter:
         return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def __exit__(self, exc_type: object, *exc: object) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -240,10 +281,21 @@ def _count(f: list[str], n: int, syntax: str, rec: str) -> None:
         raise _Bad(rec, f"{rec}: expected {n} fields '{syntax}', got {len(f)}")
 
 
+def _stamp(tok: str, rec: str) -> float:
+    t = _float(tok, "timestamp", rec)
+    if abs(t) > MAX_ABS_STAMP:
+        raise _Bad(
+            "absurd timestamp",
+            f"{rec}: timestamp: {_clip(tok)} is not a plausible time "
+            f"(expected |t| <= {MAX_ABS_STAMP:g} s)",
+        )
+    return t
+
+
 def _odometry(f: list[str], cfg: RobotConfig) -> OdometryEvent:
     rec = "odometry record"
     _count(f, 4, "O t ticks_right ticks_left", rec)
-    t = _float(f[1], "timestamp", rec)
+    t = _stamp(f[1], rec)
     return OdometryEvent(t, _int(f[2], "ticks_right", rec), _int(f[3], "ticks_left", rec))
 
 
@@ -251,7 +303,7 @@ def _laser(f: list[str], cfg: RobotConfig) -> LaserScan:
     rec = "laser record"
     if len(f) < 3:
         raise _Bad(rec, f"{rec}: expected 'L t n r_1 ... r_n', got {len(f)} fields")
-    t = _float(f[1], "timestamp", rec)
+    t = _stamp(f[1], rec)
     n = _int(f[2], "n", rec, minimum=0)
     if n != cfg.laser.n_beams:
         raise _Bad(rec, f"{rec}: n={n} but the configuration has n_beams={cfg.laser.n_beams}")
@@ -278,7 +330,7 @@ def _sonar(f: list[str], cfg: RobotConfig) -> SonarReading:
         raise _Bad(
             rec, f"{rec}: expected 'S t array pan n kind_1 r_1 b_1 ...', got {len(f)} fields"
         )
-    t = _float(f[1], "timestamp", rec)
+    t = _stamp(f[1], rec)
     array = _int(f[2], "array", rec, minimum=0)
     if array >= len(cfg.sonar.arrays):
         raise _Bad(
@@ -310,11 +362,12 @@ def _sonar(f: list[str], cfg: RobotConfig) -> SonarReading:
 def _truth(f: list[str], cfg: RobotConfig) -> TruthPose:
     rec = "truth record"
     _count(f, 5, "T t x y theta", rec)
-    t = _float(f[1], "timestamp", rec)
+    t = _stamp(f[1], rec)
     return TruthPose(t, _float(f[2], "x", rec), _float(f[3], "y", rec), _float(f[4], "theta", rec))
 
 
 _PARSERS = {"O": _odometry, "L": _laser, "S": _sonar, "T": _truth}
+_STREAMS = {"O": "odometry", "L": "laser", "S": "sonar", "T": "truth"}
 
 
 def _strip_eol(raw: bytes) -> bytes:
@@ -330,6 +383,9 @@ class LogReader:
     Strict mode raises :class:`LogFormatError` at the first bad line. With ``tolerant=True``
     bad records are skipped and counted in ``skipped`` and ``skipped_by_reason``, the first
     ``MAX_PROBLEMS`` messages kept in ``problems``; header and gzip errors are always fatal.
+    Records stamped earlier than the record of the same type before them are passed on as
+    they are (the SLAM pipeline puts them back in order or drops them) and counted in
+    ``backwards`` (by record type: odometry, laser, sonar, truth).
     """
 
     def __init__(self, path: StrPath, tolerant: bool = False) -> None:
@@ -339,6 +395,8 @@ class LogReader:
         self.skipped = 0
         self.skipped_by_reason: dict[str, int] = {}
         self.problems: list[str] = []
+        self.backwards: Counter[str] = Counter()
+        self._last_t: dict[str, float] = {}
         try:
             self._file, self._gzipped = _open_binary(path, "r")
         except OSError as exc:
@@ -454,6 +512,16 @@ class LogReader:
             msg = f"invalid value ({exc})"
         raise self._fatal(lineno, f"CONFIG header: {msg}")
 
+    def summary(self) -> dict[str, Any]:
+        """What was skipped or found out of order so far (the keys of the foreign readers'
+        ``problems.summary()``)."""
+        return {
+            "skipped": self.skipped,
+            "skipped_by_reason": dict(self.skipped_by_reason),
+            "timestamps_backwards": dict(self.backwards),
+            "problems": list(self.problems),
+        }
+
     @property
     def header(self) -> LogHeader:
         return LogHeader(self.version, self.config, self.world, dict(self.meta))
@@ -478,7 +546,13 @@ class LogReader:
                     "unknown record tag",
                     f"unknown record tag {_clip(f[0])} (expected O, L, S or T)",
                 )
-            return parser(f, self.config)
+            event = parser(f, self.config)
+            stream = _STREAMS[f[0]]
+            if event.t < self._last_t.get(stream, -math.inf):
+                self.backwards[stream] += 1
+            else:
+                self._last_t[stream] = event.t
+            return event
         except _Bad as bad:
             message = f"{self.name}:{lineno}: {bad.message}"
             if not self.tolerant:

@@ -14,7 +14,7 @@ import numpy as np
 
 from factors.odometry import integrate_poses, ticks_to_distances
 from fgslam.events import LaserScan, OdometryEvent, SonarReading, TruthPose
-from fgslam.logfile import LogReader
+from fgslam.safeio import atomic_path
 from fgslam.sim.world import World
 
 SONAR_STYLE = {"plane": ("s", "tab:blue"), "corner": ("^", "tab:red"), "edge": ("o", "tab:green")}
@@ -33,13 +33,24 @@ def draw_world(ax: plt.Axes, world: World) -> None:
 
 
 def plot_log(
-    path: str | Path, out: str | Path, world: World | None, scan_time: float | None
+    path: str | Path,
+    out: str | Path,
+    world: World | None,
+    scan_time: float | None,
+    options: dict | None = None,
 ) -> dict:
-    """Draw a log: the world, the true path, the odometry-only path, and one laser scan with the
-    sonar readings of the 6 s before and after it (placed with the true poses when the log has
-    them, else with odometry). Returns a few numbers about the log."""
-    reader = LogReader(path)
+    """Draw a log (any format :func:`fgslam.readers.open_log` reads, with reader ``options``):
+    the world (``world``, or the log's when it is built in), the true or reference path, the
+    odometry-only path, and one laser scan with the sonar readings of the 6 s before and
+    after it (placed with the true poses when the log has them, else with odometry). The
+    image is written atomically. Returns a few numbers about the log."""
+    from fgslam.readers import open_log
+    from fgslam.sim.world import BUILTIN_WORLDS, load_world
+
+    reader = open_log(path, **(options or {}))
     cfg = reader.config
+    if world is None and getattr(reader, "world", None) in BUILTIN_WORLDS:
+        world = load_world(reader.world)
     t_truth, truth, t_odo, ticks = [], [], [], []
     scans: list[LaserScan] = []
     sonar: list[SonarReading] = []
@@ -130,12 +141,13 @@ def plot_log(
     ax.set_aspect("equal")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
-    ax.set_title(f"{Path(path).name}: world '{reader.world}'")
+    ax.set_title(f"{Path(path).name}: world '{getattr(reader, 'world', '?')}'")
     handles, labels = ax.get_legend_handles_labels()
     uniq = dict(zip(labels, handles, strict=True))
     ax.legend(uniq.values(), uniq.keys(), loc="best", fontsize=7)
     fig.tight_layout()
-    fig.savefig(out, dpi=130)
+    with atomic_path(out) as tmp:
+        fig.savefig(tmp, dpi=130, format=Path(out).suffix.lstrip(".").lower() or "png")
     plt.close(fig)
     if len(truth_a) and len(odo_path):
         info["odometry_final_error_m"] = float(np.hypot(*(odo_path[-1, :2] - truth_a[-1, :2])))

@@ -39,6 +39,7 @@ def test_compare_writes_table_and_figure(short_log, tmp_path, capsys):
         (b, s) for b in ("ekf", "isam2", "batch") for s in ("fused", "laser", "sonar")
     }
     md = (out / "comparison.md").read_text()
+    assert md.startswith("# fgslam compare: short.log.gz") and "Columns: ATE RMSE" in md
     assert md.count("\n| ") >= 9 and (out / "comparison.png").stat().st_size > 20000
     assert (out / "isam2-sonar" / "map.png").exists()
     assert "| batch | fused |" in capsys.readouterr().out

@@ -92,3 +92,46 @@ def test_bad_toml_and_missing_file(tmp_path):
 def test_inconsistent_values(tmp_path):
     with pytest.raises(ConfigError, match="delay_max"):
         load_config(write(tmp_path, "[laser]\ndelay_min = 0.1\ndelay_max = 0.05\n"))
+
+
+@pytest.mark.parametrize(
+    "text, msg",
+    [
+        ("[odometry]\nencoder_steps_per_rev = 100000000000000000\n", "encoder_steps_per_rev"),
+        ("[laser]\nfov_deg = 720.0\n", "laser.fov_deg': 720.0 is not plausible"),
+        ("[laser]\nmount = { x = 1e12, y = 0.0, yaw_deg = 0.0 }\n", "laser.mount.x"),
+    ],
+)
+def test_absurd_values_are_refused(tmp_path, text, msg):
+    with pytest.raises(ConfigError, match=msg) as exc:
+        load_config(write(tmp_path, text))
+    assert "\n" not in str(exc.value) and str(tmp_path) in str(exc.value)
+
+
+def test_override_is_key_by_key_on_the_base(tmp_path):
+    """A partial file changes only its keys of the given base (a log's configuration)."""
+    from fgslam.config import override_config
+    from fgslam.readers.common import derived_config
+
+    base = derived_config(180, 180.0)  # a CARMEN laser
+    cfg = override_config(base, write(tmp_path, "[odometry]\nk_r = 0.2\n"))
+    assert cfg.odometry.k_r == 0.2 and cfg.laser.n_beams == 180
+    assert cfg.odometry.wheelbase == base.odometry.wheelbase
+    assert cfg.source == str(tmp_path / "robot.toml")
+    assert override_config(base, None) is base
+
+
+def test_contradicting_the_log_names_both(tmp_path):
+    from fgslam.config import check_against_log, override_config
+
+    log_cfg = load_config()
+    cfg = override_config(log_cfg, write(tmp_path, "[laser]\nn_beams = 180\n"))
+    with pytest.raises(ConfigError, match=r"n_beams = 180 contradicts the log x.log \(361"):
+        check_against_log(cfg, log_cfg, "x.log")
+    one = log_cfg.to_dict()["sonar"]["arrays"][:1]
+    import tomli_w
+
+    p = write(tmp_path, tomli_w.dumps({"sonar": {"arrays": one}}))
+    with pytest.raises(ConfigError, match=r"1 sonar arrays, but the log x\.log has 2"):
+        check_against_log(override_config(log_cfg, p), log_cfg, "x.log")
+    check_against_log(log_cfg, log_cfg, "x.log")

@@ -53,7 +53,7 @@ def events(rng: np.random.Generator | None = None) -> list:
             -0.0,
             tuple(SonarEcho(k, 1 / 3, -(2**-1074)) for k in ("plane", "corner", "edge")),
         ),
-        OdometryEvent(1e20, -(2**62), 2**62),
+        OdometryEvent(1.7e9 + 0.123456789, -(2**62), 2**62),
         TruthPose(123456.78901234567, 1e-300, -1.7976931348623157e308, 5e-324),
     ]
 
@@ -124,7 +124,7 @@ def test_header_and_comments(tmp_path):
 
 
 @given(
-    t=st.floats(allow_nan=False, allow_infinity=False),
+    t=st.floats(-1e10, 1e10),
     ticks=st.tuples(st.integers(-(2**63), 2**63), st.integers(-(2**63), 2**63)),
     ranges=st.lists(st.floats(allow_infinity=False), min_size=3, max_size=3),
     pose=st.tuples(*[st.floats(allow_nan=False, allow_infinity=False)] * 3),
@@ -278,6 +278,8 @@ def _valid_laser(n=N):
         (["O 1 2 1_0"], "run.log:4: odometry record: ticks_left: expected an integer"),
         (["T 1 x 0 0"], "run.log:4: truth record: x: expected a number, got 'x'"),
         (["T 1 0 0 1e999"], "run.log:4: truth record: theta: expected a finite number"),
+        (["O 1 2 3", "O 1e308 1 2"], "run.log:5: odometry record: timestamp: '1e308' is not a"),
+        (["S -2e10 0 0 0"], "run.log:4: sonar record: timestamp: '-2e10' is not a plausible"),
         (["", "# c", "L 1.0"], "run.log:6: laser record: expected 'L t n r_1 ... r_n', got 2"),
         (
             [_valid_laser(360)],
@@ -462,17 +464,18 @@ def test_fuzz_corrupted_gzip(data, pos):
 
 
 _finite = st.floats(allow_nan=False, allow_infinity=False)
+_stamp = st.floats(-1e10, 1e10)
 _events = st.one_of(
-    st.builds(OdometryEvent, _finite, st.integers(-(10**12), 10**12), st.integers(-5, 5)),
-    st.builds(TruthPose, _finite, _finite, _finite, _finite),
+    st.builds(OdometryEvent, _stamp, st.integers(-(10**12), 10**12), st.integers(-5, 5)),
+    st.builds(TruthPose, _stamp, _finite, _finite, _finite),
     st.builds(
         LaserScan,
-        _finite,
+        _stamp,
         st.lists(st.floats(allow_infinity=False), min_size=3, max_size=3).map(np.array),
     ),
     st.builds(
         SonarReading,
-        _finite,
+        _stamp,
         st.integers(0, 1),
         _finite,
         st.lists(
@@ -513,3 +516,44 @@ def test_fuzz_tolerant_keeps_every_valid_record(items):
                 read_log(p)
         else:
             assert read_log(p)[1] == valid
+
+
+# ---------------------------------------------------------------------------------------------
+# Nothing half-written, nothing reordered silently (issue 16)
+
+
+@pytest.mark.parametrize("name", ["run.log", "run.log.gz"])
+def test_writer_is_atomic(tmp_path, name):
+    """A log appears at its path only when complete; a failed write leaves the old file (or
+    none) and no temporary file behind."""
+    path = tmp_path / name
+    with LogWriter(path, CFG, "w") as w:
+        w.write(OdometryEvent(0.0, 1, 1))
+        assert not path.exists()  # still being written
+    old = path.read_bytes()
+    with pytest.raises(ValueError, match="n_beams"):
+        with LogWriter(path, CFG, "w") as w:
+            w.write(OdometryEvent(0.0, 2, 2))
+            w.write(LaserScan(0.1, np.zeros(3)))
+    assert path.read_bytes() == old
+    assert sorted(p.name for p in tmp_path.iterdir()) == [name]
+    w = LogWriter(tmp_path / "b.log", CFG, "w")
+    w.abort()
+    assert list(tmp_path.iterdir()) == [path]
+
+
+def test_reader_counts_stamps_going_backwards(tmp_path):
+    recs = ["O 1.0 0 0", "O 2.0 0 0", "O 1.5 0 0", "T 0.5 0 0 0", "T 0.4 0 0 0", "O 2.5 0 0"]
+    with LogReader(log_text(tmp_path, recs)) as r:
+        evs = list(r)
+        assert [e.t for e in evs] == [1.0, 2.0, 1.5, 0.5, 0.4, 2.5]  # passed on as they are
+        assert dict(r.backwards) == {"odometry": 1, "truth": 1}
+        assert r.summary()["timestamps_backwards"] == {"odometry": 1, "truth": 1}
+
+
+def test_absurd_stamp_is_skipped_and_counted_in_tolerant_mode(tmp_path):
+    with LogReader(log_text(tmp_path, ["O 1 0 0", "L 1e308 361", "O 2 0 0"]), tolerant=True) as r:
+        assert [e.t for e in r] == [1.0, 2.0]
+        assert r.skipped_by_reason == {"absurd timestamp": 1}
+    with pytest.raises(ValueError, match="plausible"):
+        format_record(OdometryEvent(1e308, 0, 0))

@@ -3,8 +3,9 @@ comparison.json, comparison.md and comparison.png (trajectories and errors over 
 
 from __future__ import annotations
 
-import json
+import math
 import os
+from collections import Counter
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -14,18 +15,49 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
+import numpy as np
 
-from fgslam import evaluation
-from fgslam.config import load_config
-from fgslam.logfile import LogReader
-from fgslam.slam.outputs import write_outputs
+from fgslam import evaluation, safeio
+from fgslam.config import RobotConfig, check_against_log, override_config
+from fgslam.readers import open_log
+from fgslam.slam.outputs import ScanSample, write_outputs
 from fgslam.slam.runner import BACKENDS, SENSORS, SlamResult, run_backends
 
+NEES_FLAG = 3.0  # a NEES mean beyond this factor of its dof (or below 1/factor) is flagged
 
-def _run_mode(log: str, config: str | None, sensors: str, backends: list[str]) -> list[SlamResult]:
-    reader = LogReader(log)
-    cfg = load_config(config) if config else reader.config
-    return run_backends(reader, cfg, backends, sensors)
+
+def _open(log: str, config: str | None, options: dict[str, Any] | None):
+    reader = open_log(log, **(options or {}))
+    cfg = override_config(reader.config, config)
+    check_against_log(cfg, reader.config, str(log))
+    return reader, cfg
+
+
+def _run_mode(
+    log: str,
+    config: str | None,
+    sensors: str,
+    backends: list[str],
+    options: dict[str, Any] | None,
+    keep_scans: bool,
+) -> tuple[list[SlamResult], dict[str, Any]]:
+    """The backends in one sensor mode; also what the log holds (event counts, a sample of
+    its scans for the maps when ``keep_scans``)."""
+    reader, cfg = _open(log, config, options)
+    counts: Counter = Counter()
+    sample = ScanSample()
+
+    def events():
+        for ev in reader:
+            counts[type(ev).__name__] += 1
+            if keep_scans:
+                sample.add(ev)
+            yield ev
+
+    results = run_backends(events(), cfg, backends, sensors)
+    problems = getattr(reader, "problems", None)
+    summary = reader.summary() if isinstance(problems, list) else problems.summary()
+    return results, {"events": dict(counts), "scans": sample.scans, "reader": summary}
 
 
 def compare(
@@ -36,30 +68,116 @@ def compare(
     sensors: tuple[str, ...] = SENSORS,
     workers: int | None = None,
     on_done: Callable[[SlamResult], None] | None = None,
+    options: dict[str, Any] | None = None,
 ) -> list[dict[str, Any]]:
-    """Every backend in every sensor mode on ``log``; one process per sensor mode (the front
-    end runs once per mode and feeds all backends). Returns the rows of the comparison."""
+    """Every backend in every sensor mode on ``log`` (any format :func:`open_log` reads, with
+    reader ``options``; ``config`` overrides the log's configuration key by key); one process
+    per sensor mode (the front end runs once per mode and feeds all backends). Returns the
+    rows of the comparison."""
+    from fgslam.sim.world import BUILTIN_WORLDS, load_world
+
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    with LogReader(log) as r:
-        true_map = r.meta.get("true_map")
+    reader, cfg = _open(str(log), config, options)
+    true_map = reader.meta.get("true_map")
+    world = load_world(reader.world) if getattr(reader, "world", None) in BUILTIN_WORLDS else None
+    truth_kind = getattr(reader, "reference_kind", None) or "ground truth"
     workers = workers or min(len(sensors), os.cpu_count() or 1)
     results: list[SlamResult] = []
+    info: dict[str, Any] = {}
     with ProcessPoolExecutor(max_workers=workers) as pool:
-        futs = [pool.submit(_run_mode, str(log), config, s, list(backends)) for s in sensors]
+        futs = [
+            pool.submit(_run_mode, str(log), config, s, list(backends), options, i == 0)
+            for i, s in enumerate(sensors)
+        ]
         for fut in futs:
-            for res in fut.result():
+            res_list, mode_info = fut.result()
+            info = info or mode_info
+            for res in res_list:
                 results.append(res)
                 if on_done:
                     on_done(res)
     rows = []
     for res in results:
-        rep = write_outputs(res, out / f"{res.backend}-{res.sensors}", true_map)
+        rep = write_outputs(
+            res,
+            out / f"{res.backend}-{res.sensors}",
+            true_map,
+            extra={"truth_source": truth_kind} if res.has_truth else None,
+            world=world,
+            scans=info.get("scans"),
+            cfg=cfg,
+        )
         rows.append(rep)
-    (out / "comparison.json").write_text(json.dumps(rows, indent=2))
-    (out / "comparison.md").write_text(markdown_table(rows))
-    plot_comparison(results, out / "comparison.png")
+    safeio.write_json(out / "comparison.json", rows)
+    header = describe_run(
+        str(log), results, cfg, info.get("events", {}), truth_kind, info.get("reader")
+    )
+    safeio.write_text(out / "comparison.md", header + markdown_table(rows))
+    plot_comparison(results, out / "comparison.png", world=world)
     return rows
+
+
+def _path_length(xy: np.ndarray) -> float:
+    return float(np.sum(np.hypot(*np.diff(xy[:, :2], axis=0).T))) if len(xy) > 1 else 0.0
+
+
+def describe_run(
+    log: str,
+    results: list[SlamResult],
+    cfg: RobotConfig,
+    events: dict[str, int],
+    truth_kind: str = "ground truth",
+    reader: dict[str, Any] | None = None,
+) -> str:
+    """The head of comparison.md: what was run on what (log, duration, path length, sensors
+    and how much of each the log holds, records the reader skipped or found out of order and
+    the pipeline dropped) and the legend of the table's columns."""
+    res = results[0] if results else None
+    duration = res.log_duration if res else 0.0
+    if res is not None and res.has_truth:
+        length, how = _path_length(res.truth), f"along the {truth_kind}"
+    elif res is not None:
+        length, how = _path_length(res.poses), "along the first estimate"
+    else:
+        length, how = 0.0, ""
+    las = cfg.laser
+    arrays = ", ".join(a.name for a in cfg.sonar.arrays) or "none"
+    n = {k: events.get(k, 0) for k in ("LaserScan", "SonarReading", "OdometryEvent", "TruthPose")}
+    runs = ", ".join(sorted({r.backend for r in results}))
+    modes = ", ".join(sorted({r.sensors for r in results}))
+    return (
+        f"# fgslam compare: {Path(log).name}\n\n"
+        f"Backends {runs} in sensor modes {modes} on `{log}` (robot '{cfg.robot.name}').\n\n"
+        f"- log: {duration:.1f} s, {length:.1f} m travelled ({how})\n"
+        f"- laser: {n['LaserScan']} scans of {las.n_beams} beams over {las.fov_deg:g} deg, "
+        f"max range {las.max_range:g} m\n"
+        f"- sonar: {n['SonarReading']} readings from {len(cfg.sonar.arrays)} arrays ({arrays})\n"
+        f"- odometry: {n['OdometryEvent']} samples; {n['TruthPose']} poses of {truth_kind}\n"
+        f"{_input_line(reader or {}, res)}\n"
+        "Columns: ATE RMSE / max: position error of the keyframe poses against the truth after "
+        "an SE(2) alignment (m); final error: position error of the last pose, unaligned (m); "
+        "NEES mean: mean normalised estimation error squared of the poses, expected near its "
+        "3 degrees of freedom (much larger: the covariances are overconfident; much smaller: "
+        "pessimistic); lines / corners / points: landmarks in the map; real-time factor: log "
+        "time over wall time; latency p95: 95th percentile of the time a keyframe takes (ms). "
+        "'-': not available (no truth, or no pose covariances).\n\n"
+    )
+
+
+def _input_line(reader: dict[str, Any], res: SlamResult | None) -> str:
+    """'- records: ...' when the reader skipped records or found stamps going backwards, or
+    the pipeline dropped events as too late; empty otherwise."""
+    dropped = int(res.stats.get("events_out_of_order", 0)) if res is not None else 0
+    parts = []
+    if reader.get("skipped"):
+        parts.append(f"{reader['skipped']} skipped ({reader.get('skipped_by_reason', {})})")
+    back = reader.get("timestamps_backwards") or {}
+    if back:
+        parts.append(f"stamps going backwards: {back}")
+    if dropped:
+        parts.append(f"{dropped} events dropped as too late to put back in order")
+    return f"- records: {'; '.join(parts)}\n" if parts else ""
 
 
 def markdown_table(rows: list[dict[str, Any]]) -> str:
@@ -69,18 +187,36 @@ def markdown_table(rows: list[dict[str, Any]]) -> str:
         "|---|---|---|---|---|---|---|---|---|---|---|\n"
     )
     lines = []
+    flags = []
     for r in rows:
         ate = r.get("ate", {})
         lm = r.get("landmarks", {})
-        nees = r.get("nees", {}).get("mean")
+        nees_d = r.get("nees", {})
+        nees = nees_d.get("mean")
+        dof = nees_d.get("dof", 3)
         fin = r.get("final_pose_error", {}).get("position_m")
 
         def f(v, p=3):
-            return "-" if v is None else f"{v:.{p}f}"
+            return "-" if v is None or not math.isfinite(v) else f"{v:.{p}f}"
 
+        nees_s = f(nees, 1)
+        if nees is not None and math.isfinite(nees):
+            if nees > NEES_FLAG * dof:
+                nees_s += " (!)"
+                flags.append(
+                    f"- {r['backend']}/{r['sensors']}: NEES {nees:.1f} is {nees / dof:.0f}x its "
+                    f"{dof} dof: the covariances are overconfident (errors larger than claimed)"
+                )
+            elif nees < dof / NEES_FLAG:
+                nees_s += " (!)"
+                flags.append(
+                    f"- {r['backend']}/{r['sensors']}: NEES {nees:.2f} is far below its {dof} "
+                    "dof: the covariances are pessimistic"
+                )
+        name = r["backend"] + (" (PARTIAL)" if r.get("partial") else "")
         lines.append(
-            f"| {r['backend']} | {r['sensors']} | {f(ate.get('rmse'))} | {f(ate.get('max'))} | "
-            f"{f(fin)} | {f(nees, 1)} | {lm.get('line', 0)} | {lm.get('corner', 0)} | "
+            f"| {name} | {r['sensors']} | {f(ate.get('rmse'))} | {f(ate.get('max'))} | "
+            f"{f(fin)} | {nees_s} | {lm.get('line', 0)} | {lm.get('corner', 0)} | "
             f"{lm.get('point', 0)} | {f(r.get('realtime_factor'), 1)} | "
             f"{f(r['keyframe_latency_ms']['p95'], 1)} |"
         )
@@ -88,12 +224,45 @@ def markdown_table(rows: list[dict[str, Any]]) -> str:
     tail = (
         f"\nOdometry alone: ATE RMSE {odo['rmse']:.3f} m, max {odo['max']:.3f} m.\n" if odo else ""
     )
+    if flags:
+        tail += "\n(!) NEES far from its degrees of freedom:\n\n" + "\n".join(flags) + "\n"
+    for r in rows:
+        part = r.get("partial")
+        if part:
+            tail += (
+                f"\n{r['backend']}/{r['sensors']} is PARTIAL: the backend failed at keyframe "
+                f"{part.get('keyframe')} (t = {part.get('t')}): {part.get('error')}\n"
+            )
     return head + "\n".join(lines) + "\n" + tail
 
 
-def plot_comparison(results: list[SlamResult], path: Path) -> None:
-    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(14, 9), gridspec_kw={"height_ratios": [3, 2]})
+def plot_comparison(results: list[SlamResult], path: Path, world: Any = None) -> dict[str, Any]:
+    """Trajectories on equal axes in a panel of the path's aspect ratio (with the world
+    outline of a simulated log), and position errors against the truth over time on a linear
+    axis clipped to the backends' errors (odometry alone may leave it: its error is in the
+    table). Returns the axes' limits and scales."""
+    xy = [r.poses[:, :2] for r in results if len(r.poses)]
+    xy += [r.truth[:, :2] for r in results[:1] if r.has_truth]
+    allxy = np.concatenate(xy) if xy else np.zeros((1, 2))
+    lo, hi = allxy.min(axis=0), allxy.max(axis=0)
+    pad = max(1.0, 0.06 * float(np.max(hi - lo)))
+    lo, hi = lo - pad, hi + pad
+    # no thinner than 1:4, so that a straight drive is not a hair-line strip
+    short = int(np.argmin(hi - lo))
+    grow = max(0.0, float(np.max(hi - lo)) / 4.0 - (hi[short] - lo[short]))
+    lo[short] -= grow / 2
+    hi[short] += grow / 2
+    w, h = hi - lo
+    top_h = float(np.clip(13.0 * h / w, 3.0, 12.0))
+    fig, (ax1, ax2) = plt.subplots(
+        2, 1, figsize=(14, top_h + 4.0), gridspec_kw={"height_ratios": [top_h, 3.5]}
+    )
+    if world is not None:
+        from fgslam.plotting import draw_world
+
+        draw_world(ax1, world)
     truth_drawn = False
+    worst = 0.0
     for res in results:
         if res.has_truth and not truth_drawn:
             ax1.plot(res.truth[:, 0], res.truth[:, 1], "-", color="0.5", lw=2, label="truth")
@@ -103,25 +272,37 @@ def plot_comparison(results: list[SlamResult], path: Path) -> None:
             truth_drawn = True
         label = f"{res.backend} / {res.sensors}"
         ax1.plot(res.poses[:, 0], res.poses[:, 1], "-", lw=0.9, label=label)
-        if res.has_truth:
+        if res.has_truth and len(res.times):
             ref = evaluation.interpolate_poses(res.truth_t, res.truth, res.times)
-            ax2.plot(
-                res.times,
-                evaluation.position_errors(res.poses, ref, align=False),
-                "-",
-                lw=0.9,
-                label=label,
-            )
+            err = evaluation.position_errors(res.poses, ref, align=False)
+            worst = max(worst, float(np.nanmax(err)) if len(err) else 0.0)
+            ax2.plot(res.times, err, "-", lw=0.9, label=label)
+    ax1.set_xlim(lo[0], hi[0])
+    ax1.set_ylim(lo[1], hi[1])
     ax1.set_aspect("equal")
     ax1.set_xlabel("x (m)")
     ax1.set_ylabel("y (m)")
-    ax1.legend(fontsize=7, ncol=3)
+    handles, labels = ax1.get_legend_handles_labels()
+    uniq = dict(zip(labels, handles, strict=True))
+    ax1.legend(uniq.values(), uniq.keys(), fontsize=7, ncol=3)
     ax1.set_title("trajectories")
     ax2.set_xlabel("time (s)")
     ax2.set_ylabel("position error (m)")
-    ax2.set_yscale("log")
+    if worst > 0:
+        ax2.set_ylim(0.0, 1.15 * worst)
     ax2.legend(fontsize=7, ncol=4)
-    ax2.set_title("position error against the truth (map anchored at the first true pose)")
+    ax2.set_title(
+        "position error against the truth (map anchored at the first true pose; axis clipped "
+        "to the backends' largest error)"
+    )
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    with safeio.atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110)
     plt.close(fig)
+    return {
+        "xlim": ax1.get_xlim(),
+        "ylim": ax1.get_ylim(),
+        "aspect": ax1.get_aspect(),
+        "error_yscale": ax2.get_yscale(),
+        "error_ylim": ax2.get_ylim(),
+    }

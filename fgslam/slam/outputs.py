@@ -2,7 +2,9 @@
 
 World frame, m, rad. The map frame is anchored at the first keyframe's true pose when the log
 has ground truth, so errors against the truth need no alignment; the ATE is reported after an
-SE(2) alignment all the same, as is customary.
+SE(2) alignment all the same, as is customary. Every file is written atomically (a temporary
+file in the same folder, renamed), so a folder never holds half a file. A result whose
+backend failed mid-run (``stats["partial"]``) is written all the same, marked partial.
 """
 
 from __future__ import annotations
@@ -20,9 +22,70 @@ import numpy as np
 from matplotlib.patches import Ellipse
 
 from factors.geometry import wrap_angle
-from fgslam import evaluation
+from fgslam import evaluation, safeio
+from fgslam.config import RobotConfig
+from fgslam.events import Event, LaserScan
 from fgslam.slam.mapping import line_endpoints
 from fgslam.slam.runner import SlamResult
+
+MAX_MAP_POINTS = 150_000  # laser points drawn in map.png at most
+
+
+class ScanSample:
+    """A bounded, evenly thinned sample of a run's laser scans, for drawing the map: every
+    ``every``-th scan is kept, and when more than ``max_scans`` are held every other one is
+    dropped and ``every`` doubles, so memory stays bounded on logs of any length."""
+
+    def __init__(self, max_scans: int = 800) -> None:
+        self.max_scans = max_scans
+        self.every = 1
+        self.seen = 0
+        self.scans: list[tuple[float, np.ndarray]] = []
+
+    def add(self, ev: Event) -> None:
+        if not isinstance(ev, LaserScan):
+            return
+        if self.seen % self.every == 0:
+            self.scans.append((ev.t, np.asarray(ev.ranges, dtype=np.float32)))
+            if len(self.scans) > self.max_scans:
+                self.scans = self.scans[::2]
+                self.every *= 2
+        self.seen += 1
+
+
+def laser_points(
+    scans: list[tuple[float, np.ndarray]],
+    times: np.ndarray,
+    poses: np.ndarray,
+    cfg: RobotConfig,
+    max_points: int = MAX_MAP_POINTS,
+) -> np.ndarray:
+    """World (x, y) of the returns of ``scans`` (time, ranges in the laser frame), placed with
+    the trajectory ``times``/``poses`` (interpolated between keyframes) and the laser mount;
+    scans outside the trajectory's time span and no-return readings are left out, and the
+    points thinned evenly to at most ``max_points``."""
+    if not scans or len(times) < 1:
+        return np.zeros((0, 2))
+    t = np.array([s[0] for s in scans])
+    keep = (t >= times[0] - 1e-9) & (t <= times[-1] + 1e-9)
+    if not keep.any():
+        return np.zeros((0, 2))
+    t = t[keep]
+    rng = np.array([s[1] for s, k in zip(scans, keep, strict=True) if k], dtype=float)
+    if len(times) == 1:
+        robot = np.repeat(poses[:1], len(t), axis=0)
+    else:
+        robot = evaluation.interpolate_poses(times, poses, t)
+    m = cfg.laser.mount
+    c, s = np.cos(robot[:, 2]), np.sin(robot[:, 2])
+    lx = robot[:, 0] + c * m.x - s * m.y
+    ly = robot[:, 1] + s * m.x + c * m.y
+    ang = robot[:, 2:3] + math.radians(m.yaw_deg) + cfg.laser.bearings[None, :]
+    ok = np.isfinite(rng) & (rng > 0) & (rng < 0.999 * cfg.laser.max_range)
+    px = (lx[:, None] + rng * np.cos(ang))[ok]
+    py = (ly[:, None] + rng * np.sin(ang))[ok]
+    step = max(1, math.ceil(px.size / max_points))
+    return np.column_stack([px[::step], py[::step]])
 
 
 def map_dict(res: SlamResult) -> dict[str, Any]:
@@ -102,6 +165,8 @@ def report_dict(res: SlamResult, true_map: dict[str, Any] | None = None) -> dict
         },
         "statistics": dict(res.stats),
     }
+    if res.stats.get("partial"):
+        rep["partial"] = dict(res.stats["partial"])
     if res.has_truth and len(res.times):
         ref = evaluation.interpolate_poses(res.truth_t, res.truth, res.times)
         rep["ate"] = evaluation.ate(res.poses, ref)
@@ -120,10 +185,29 @@ def report_dict(res: SlamResult, true_map: dict[str, Any] | None = None) -> dict
     return rep
 
 
-def plot_map(res: SlamResult, path: str | Path, title: str = "") -> None:
-    fig, ax = plt.subplots(figsize=(14, 6))
+def plot_map(
+    res: SlamResult,
+    path: str | Path,
+    title: str = "",
+    *,
+    world: Any = None,
+    points: np.ndarray | None = None,
+    truth_label: str = "true path",
+) -> None:
+    """The map as a person recognises it: the laser points placed with the estimate (grey),
+    the world outline of a simulated log (black), the true or reference path, odometry, the
+    estimate, and the landmarks on top; the figure is sized to what is drawn."""
+    fig, ax = plt.subplots(figsize=_figsize(res, points))
+    if points is not None and len(points):
+        ax.plot(points[:, 0], points[:, 1], ".", color="0.35", ms=0.6, mew=0, alpha=0.8)
+        ax.plot([], [], ".", color="0.35", ms=3, label="laser points (placed with the estimate)")
+    if world is not None:
+        from fgslam.plotting import draw_world
+
+        draw_world(ax, world)
+        ax.plot([], [], "k-", lw=1.0, label="world (simulator)")
     if res.has_truth:
-        ax.plot(res.truth[:, 0], res.truth[:, 1], "-", color="0.6", lw=1.0, label="true path")
+        ax.plot(res.truth[:, 0], res.truth[:, 1], "-", color="tab:cyan", lw=1.0, label=truth_label)
     if len(res.odometry):
         ax.plot(
             res.odometry[:, 0],
@@ -163,14 +247,70 @@ def plot_map(res: SlamResult, path: str | Path, title: str = "") -> None:
     ax.plot([], [], "-", color="tab:blue", label="map lines")
     ax.plot([], [], "^", color="tab:red", mfc="none", label="corners (3-sigma ellipses)")
     ax.plot([], [], "o", color="tab:purple", mfc="none", label="points")
+    lim = _extent(res, points)
+    if lim is not None:
+        ax.set_xlim(lim[0], lim[1])
+        ax.set_ylim(lim[2], lim[3])
     ax.set_aspect("equal")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
-    ax.set_title(title or f"{res.backend}, {res.sensors}: {len(res.landmarks)} landmarks")
-    ax.legend(loc="best", fontsize=7)
+    partial = " (PARTIAL: backend failed)" if res.stats.get("partial") else ""
+    ax.set_title(
+        (title or f"{res.backend}, {res.sensors}: {len(res.landmarks)} landmarks") + partial
+    )
+    handles, labels = ax.get_legend_handles_labels()
+    uniq = {
+        lab: h for lab, h in zip(labels, handles, strict=True) if lab != "laser points (estimate)"
+    }
+    ax.legend(uniq.values(), uniq.keys(), loc="best", fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    with safeio.atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=120)
     plt.close(fig)
+
+
+def _extent(res: SlamResult, points: np.ndarray | None) -> tuple[float, ...] | None:
+    """x0, x1, y0, y1 of the trajectories, the landmarks and (all but the farthest 0.2 % of)
+    the laser points, with a margin."""
+    parts = [res.poses[:, :2]]
+    marks = []
+    for lid, lm in res.landmarks.items():
+        m = res.means.get(lid)
+        if m is None:
+            continue
+        if lm.kind == "line" and lm.extent is not None:
+            marks.append(line_endpoints(m, lm.extent)[:, :2])
+        elif lm.kind in ("corner", "point"):
+            marks.append(np.asarray(m[:2], dtype=float).reshape(1, 2))
+    if marks:
+        lm_xy = np.concatenate(marks)
+        if len(lm_xy) > 100:  # a few wild landmarks must not shrink the map to a corner
+            lm_xy = np.percentile(lm_xy, [1.0, 99.0], axis=0)
+        parts.append(lm_xy)
+    if res.has_truth:
+        parts.append(res.truth[:, :2])
+    if points is not None and len(points) > 10:
+        lo = np.percentile(points, 0.1, axis=0)
+        hi = np.percentile(points, 99.9, axis=0)
+        parts.append(np.array([lo, hi]))
+    xy = np.concatenate([p for p in parts if len(p)]) if any(len(p) for p in parts) else None
+    if xy is None:
+        return None
+    x0, y0 = xy.min(axis=0)
+    x1, y1 = xy.max(axis=0)
+    pad = 0.04 * max(x1 - x0, y1 - y0, 1.0)
+    return x0 - pad, x1 + pad, y0 - pad, y1 + pad
+
+
+def _figsize(res: SlamResult, points: np.ndarray | None) -> tuple[float, float]:
+    """A figure of the map's aspect ratio, 12 in on its long side (legend room added)."""
+    lim = _extent(res, points)
+    if lim is None:
+        return (8.0, 6.0)
+    w, h = lim[1] - lim[0], lim[3] - lim[2]
+    if w >= h:
+        return (12.0, float(np.clip(12.0 * h / w, 3.0, 12.0)) + 0.8)
+    return (float(np.clip(10.0 * w / h, 3.0, 10.0)) + 0.8, 10.0)
 
 
 def _ellipse(ax, mean, cov, nsig: float = 3.0) -> None:
@@ -191,14 +331,32 @@ def _ellipse(ax, mean, cov, nsig: float = 3.0) -> None:
 
 
 def write_outputs(
-    res: SlamResult, out: str | Path, true_map: dict[str, Any] | None = None
+    res: SlamResult,
+    out: str | Path,
+    true_map: dict[str, Any] | None = None,
+    *,
+    extra: dict[str, Any] | None = None,
+    world: Any = None,
+    scans: list[tuple[float, np.ndarray]] | None = None,
+    cfg: RobotConfig | None = None,
 ) -> dict[str, Any]:
-    """Write the four files into directory ``out``; returns the report."""
+    """Write the four files into directory ``out`` (each atomically); returns the report.
+
+    ``extra``: more keys for report.json (what the reader found, ...); ``world``: the
+    simulator's world, drawn as an outline; ``scans`` (time, ranges) with ``cfg``: laser scans
+    drawn in map.png placed with the estimated trajectory (see :class:`ScanSample`)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    evaluation.write_tum(out / "trajectory.tum", res.times, res.poses)
-    (out / "map.json").write_text(json.dumps(map_dict(res), indent=1))
+    with safeio.atomic_path(out / "trajectory.tum") as tmp:
+        evaluation.write_tum(tmp, res.times, res.poses)
+    safeio.write_text(out / "map.json", json.dumps(map_dict(res), indent=1))
     rep = report_dict(res, true_map)
-    (out / "report.json").write_text(json.dumps(rep, indent=2))
-    plot_map(res, out / "map.png")
+    if extra:
+        rep.update(extra)
+    safeio.write_json(out / "report.json", rep)
+    points = None
+    if scans and cfg is not None and len(res.times):
+        points = laser_points(scans, res.times, res.poses, cfg)
+    label = "reference path" if rep.get("truth_source") == "reference" else "true path"
+    plot_map(res, out / "map.png", world=world, points=points, truth_label=label)
     return rep
