@@ -41,11 +41,10 @@ from fgslam.config import RobotConfig
 from fgslam.device_process import DeviceProcess
 from fgslam.errors import UserError
 from fgslam.events import Event, SonarReading
-from fgslam.ordering import SourceMerger
+from fgslam.ordering import REORDER_WINDOW, SourceMerger
 from fgslam.ports import LASER, ODOMETRY, DevicePorts, sonar_name, start_emulators
 from fgslam.slam.runner import SlamPipeline, SlamResult
 
-REORDER_WINDOW = 2.0  # s of log time: what is left out of order after the merge (late events)
 STATUS_INTERVAL = 0.25  # wall s between status updates
 SILENT_AFTER = 1.0  # s of a driver's attentive waiting without data: the merge goes on without it
 HOST_GONE = 0.5  # wall s after every host closed its port: fgslam emulate stops

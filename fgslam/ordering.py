@@ -28,6 +28,12 @@ from collections.abc import Iterable, Iterator, Mapping, Sequence
 
 from fgslam.events import Event
 
+# s of log time: the one reorder window of the SLAM pipeline, over logs and online. Online it
+# puts back a device's first events after a silence and the steps back of a device clock
+# filter that finds a smaller delay (large at the start of a fast emulation); a replayed
+# recording goes through the same window, so that both give the same map.
+REORDER_WINDOW = 2.0
+
 
 def _keyed(events: Iterable[Event], rank: int) -> Iterator[tuple[float, int, int, Event]]:
     key = -math.inf

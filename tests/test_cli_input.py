@@ -183,7 +183,8 @@ def test_reversed_log_is_reported(tiny_log, tmp_path, capsys):
     text = capsys.readouterr().out
     inp = json.loads((out / "report.json").read_text())["input"]
     assert inp["records"] == len(recs)
-    assert inp["events_dropped_out_of_order"] > 0.9 * len(recs)
+    # all but the events within the 2 s reorder window of the first (latest) one
+    assert inp["events_dropped_out_of_order"] > 0.7 * len(recs)
     assert sum(inp["timestamps_backwards"].values()) == len(recs) - 4  # all but 1 per stream
     assert f"WARNING: {inp['events_dropped_out_of_order']} of {len(recs)} records" in text
 

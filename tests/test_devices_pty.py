@@ -265,7 +265,8 @@ def test_framed_device_checks(stack, clock):
     with pytest.raises(DeviceError, match="no reply"):
         drv.open()  # wrong line rate
     assert emu.stats.garbled > 0
-    drv = OdometryBoard(emu.port, clock=clock, reply_timeout=0.5, retries=1)
+    # a reply takes the emulator a few ms; 2 s (attentive) leave room for a loaded machine
+    drv = OdometryBoard(emu.port, clock=clock, reply_timeout=2.0, retries=1)
     stack.callback(drv.close)
     emu.refuse_next(1)
     with pytest.raises(DeviceError, match="refused"):

@@ -261,11 +261,11 @@ def test_online_equals_replay_with_every_core_loaded(tmp_path):
 
 
 def test_online_lags_then_catches_up_when_the_host_cannot_follow(tmp_path):
-    """The devices stream at 40x, faster than SLAM can follow on any machine this runs on:
-    the run lags (reported as ``max_lag``), every event is processed at the end, and the
-    result is the replay's."""
+    """The devices stream at 20x, faster than SLAM follows on the machines this runs on
+    (about 10x for the fused corridor): the run lags (reported as ``max_lag``), every event
+    is processed at the end, and the result is the replay's."""
     raw = tmp_path / "raw"
-    run, emulation = online(raw, speed=40.0, duration=30.0, seed=3)
+    run, emulation = online(raw, speed=20.0, duration=30.0, seed=3)
     assert run.reason == "end of data" and run.max_lag > 0
     assert_everything_arrived(run, emulation, 30.0)
     assert_equals_replay(run, raw, tmp_path)

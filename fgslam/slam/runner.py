@@ -25,7 +25,7 @@ from factors.odometry import OdometryParams, integrate_poses, preintegrate
 from fgslam.config import RobotConfig
 from fgslam.events import Event, OdometryEvent, TruthPose
 from fgslam.frontend.pipeline import FrontEnd
-from fgslam.ordering import ReorderBuffer
+from fgslam.ordering import REORDER_WINDOW, ReorderBuffer
 from fgslam.slam import models
 from fgslam.slam.backend import Backend
 from fgslam.slam.ekf import EkfBackend
@@ -146,7 +146,7 @@ class SlamPipeline:
         map_params: MapParams | None = None,
         *,
         progress: Callable[[float], None] | None = None,
-        reorder_window: float = 1.0,
+        reorder_window: float = REORDER_WINDOW,
         count_idle: bool = True,
     ) -> None:
         if sensors not in SENSORS:
@@ -345,7 +345,8 @@ def run_backends(
     map_params: MapParams | None = None,
 ) -> list[SlamResult]:
     """Run several backends on one pass of the front end over an event stream (in time order
-    up to a :class:`ReorderBuffer` window of 1 s; later events are dropped and counted).
+    up to a :class:`ReorderBuffer` window of ``REORDER_WINDOW`` s; later events are dropped
+    and counted).
     Each backend has its own map manager, so associations follow its own estimates.
     ``batch`` shares the iSAM2 run's graph when both are asked for: it is that graph solved
     by Levenberg-Marquardt at the end. ``progress`` is called with each event's time.
