@@ -41,6 +41,7 @@ VIRTUAL_K = 0.5  # sigma(L) = k L per sample, each wheel (k_r, k_l)
 VIRTUAL_K_D = 0.1  # sigma(D) = k_d D per sample (acts on the turn of the sample)
 VIRTUAL_STEP = 0.05  # m of travel per sample at most
 VIRTUAL_TURN = math.radians(2.0)  # rad of turn per sample at most
+MAX_SAMPLES = 200000  # samples of one increment at most (10 km, 400 turns)
 
 
 class ReaderError(UserError, ValueError):
@@ -58,6 +59,7 @@ class Problems:
         self.skipped_by_reason: Counter = Counter()
         self.backwards: Counter = Counter()
         self.problems: list[str] = []
+        self.notes: dict[str, Any] = {}  # e.g. "timestamps", "odometry" (docs/readers.md)
 
     @property
     def skipped(self) -> int:
@@ -74,6 +76,7 @@ class Problems:
             "skipped_by_reason": dict(self.skipped_by_reason),
             "timestamps_backwards": dict(self.backwards),
             "problems": list(self.problems),
+            **self.notes,
         }
 
 
@@ -240,16 +243,31 @@ class VirtualDrive:
         self.tick_r, self.tick_l = tr, tl
         return ev
 
-    def ticks(self, t: float, inc: tuple[float, float, float]) -> list[OdometryEvent]:
-        """The odometry samples of one increment ending at time ``t``."""
+    def ticks(
+        self,
+        t: float,
+        inc: tuple[float, float, float],
+        after: float = -math.inf,
+        hole: float = math.inf,
+    ) -> list[OdometryEvent]:
+        """The odometry samples of one increment ending at time ``t``, stamped no earlier
+        than ``after`` (the last event delivered); after a gap longer than ``hole`` s they
+        are all stamped ``t`` (the motion's time is unknown: the gap stays visible). An
+        increment that would take more than :data:`MAX_SAMPLES` samples is a
+        :class:`ReaderError` (readers bound motion before they get here)."""
         dx, dy, dth = (float(v) for v in inc)
         dist = math.hypot(dx, dy)
+        if not (dist <= MAX_SAMPLES * VIRTUAL_STEP and abs(dth) <= MAX_SAMPLES * VIRTUAL_TURN):
+            raise ReaderError(f"odometry increment of {dist:.3g} m, {dth:.3g} rad: too large")
         n = max(1, math.ceil(dist / VIRTUAL_STEP - 1e-9), math.ceil(abs(dth) / VIRTUAL_TURN - 1e-9))
         h = dth / n
         # n chords of length c turning by h each span 2 c sin(n h/2) / (2 sin(h/2))
         ratio = math.sin(h / 2) / math.sin(dth / 2) if abs(dth) > 1e-12 else 1.0 / n
         c = math.copysign(dist * ratio, dx) if dx < 0 else dist * ratio
-        t0 = self.t if self.t is not None and self.t < t else t
+        t = max(t, after)
+        t0 = max(self.t, after) if self.t is not None and self.t < t else t
+        if t - t0 > hole:
+            t0 = t
         self.t = t
         return [
             self._tick(
