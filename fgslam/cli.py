@@ -165,7 +165,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
 def _reader_options(args: argparse.Namespace) -> dict:
     """Options of the foreign-log readers (fgslam.readers.open_log) from the command line."""
     opts: dict = {"tolerant": args.tolerant, "format": args.format}
-    for key in ("scan_topic", "odom_topic", "range_topics", "carmen_mode"):
+    for key in ("scan_topic", "odom_topic", "range_topics", "carmen_mode", "timestamps"):
         value = getattr(args, key, None)
         if value:
             opts["mode" if key == "carmen_mode" else key] = value
@@ -351,6 +351,12 @@ def _add_reader_arguments(p: argparse.ArgumentParser) -> None:
         "--carmen-mode",
         choices=["auto", "corrected", "raw"],
         help="CARMEN: corrected log (reference poses, odometry rebuilt) or raw (default auto)",
+    )
+    g.add_argument(
+        "--timestamps",
+        choices=["auto", "ipc", "logger", "index"],
+        help="CARMEN: the stamp field to use (default auto: the sound one, else an error); "
+        "index: scans 0.2 s apart",
     )
     g.add_argument("--scan-topic", help="ROS: sensor_msgs/LaserScan topic (default: the only)")
     g.add_argument("--odom-topic", help="ROS: nav_msgs/Odometry topic (default: the only)")

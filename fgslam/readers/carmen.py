@@ -335,7 +335,6 @@ class CarmenLog(Source):
                 and first["pose"] == first["odom"]
                 and after_first is not None
                 and after_first["tag"] == "ODOM"
-                and after_first["t"] == 0.0
                 and after_first["pose"] == first["pose"]
             )
             mode = "corrected" if corrected else "raw"
@@ -401,13 +400,14 @@ class CarmenLog(Source):
                     last_odo_t = t if math.isfinite(t) else last_odo_t
                     continue
                 inc = relative(base, rec["pose"])
-                if self._implausible(lineno, inc, t - base_t):
+                if implausible(inc, t - base_t, limits) is not None:
                     if jumped is not None and not implausible(
                         relative(jumped, rec["pose"]), MIN_DT, limits
                     ):
                         notes["rebased"] += 1  # the odometry jumped and stayed: restart there
                         base, base_t, jumped = rec["pose"], t, None
                     else:
+                        self._implausible(lineno, inc, t - base_t)
                         jumped = rec["pose"]
                     continue
                 jumped = None

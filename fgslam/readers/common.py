@@ -264,9 +264,10 @@ class VirtualDrive:
         # n chords of length c turning by h each span 2 c sin(n h/2) / (2 sin(h/2))
         ratio = math.sin(h / 2) / math.sin(dth / 2) if abs(dth) > 1e-12 else 1.0 / n
         c = math.copysign(dist * ratio, dx) if dx < 0 else dist * ratio
+        gap = t - self.t if self.t is not None else 0.0
         t = max(t, after)
         t0 = max(self.t, after) if self.t is not None and self.t < t else t
-        if t - t0 > hole:
+        if gap > hole:
             t0 = t
         self.t = t
         return [

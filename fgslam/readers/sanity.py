@@ -97,7 +97,7 @@ def _stream(
             f"{name} stamped 0 ({int(zero.sum())} of {len(t)}, first at line {lines[zero][0]})"
         )
         return
-    junk = (t < 0) | ((np.abs(t) < 1e-9)) | ~np.isfinite(t)
+    junk = (t < 0) | (np.abs(t) < 1e-9) | ~np.isfinite(t)
     bad = junk.copy()
     latest = -math.inf
     wrapped = None
@@ -136,7 +136,9 @@ def stamp_defects(
     rep = StampReport()
     sl, st = np.asarray(scan_lines, dtype=int), np.asarray(scan_t, dtype=float)
     ol, ot = np.asarray(odo_lines, dtype=int), np.asarray(odo_t, dtype=float)
-    if len(st) > 1:
+    _stream("scan", sl, st, tolerance, rep)
+    _stream("odometry", ol, ot, tolerance, rep)
+    if len(st) > 1 and not (st == 0).mean() > 0.5:
         same = np.diff(st) == 0
         if same.mean() > MAX_SHARED_SCANS:
             i = int(np.argmax(same)) + 1
@@ -145,8 +147,6 @@ def stamp_defects(
                 f"stamp, {len(np.unique(st))} distinct values; first at line {sl[i]}: "
                 f"{st[i]:.6g})"
             )
-    _stream("scan", sl, st, tolerance, rep)
-    _stream("odometry", ol, ot, tolerance, rep)
     return rep
 
 
@@ -173,8 +173,7 @@ def choose_clock(
         else:
             what = "; ".join(f"{k} field: {r.defects[0]}" for k, r in reports.items())
             raise ReaderError(
-                f"{name}: no usable timestamps ({what}); choose with --timestamps "
-                "index|ipc|logger"
+                f"{name}: no usable timestamps ({what}); choose with --timestamps index|ipc|logger"
             )
     else:
         chosen = requested
@@ -182,9 +181,7 @@ def choose_clock(
     if chosen == "index":
         record["index_period_s"] = INDEX_PERIOD
     elif chosen in reports:
-        record["sporadic_bad_stamps"] = {
-            k: len(v) for k, v in reports[chosen].sporadic.items()
-        }
+        record["sporadic_bad_stamps"] = {k: len(v) for k, v in reports[chosen].sporadic.items()}
     return chosen, record
 
 
