@@ -87,7 +87,7 @@ def test_coarse_stamps_are_refused_naming_the_line(tmp_path):
     ):
         open_log(f)
     log = open_log(f, timestamps="index")
-    scans, odo, ev = scans_and_odometry(log)
+    scans, _odo, ev = scans_and_odometry(log)
     assert len(scans) == 30
     assert [s.t for s in scans] == pytest.approx(INDEX_PERIOD * np.arange(1, 31))
     assert [e.t for e in ev] == sorted(e.t for e in ev)
@@ -239,7 +239,7 @@ def test_odometry_that_jumps_and_stays_is_rebased(tmp_path):
         f[1] = repr(float(f[1]) + 100.0)
         lines[k] = " ".join(f)
     log = open_log(write(tmp_path, "\n".join(lines) + "\n"), tolerant=True)
-    scans, odo, _ = scans_and_odometry(log)
+    scans, _odo, _ = scans_and_odometry(log)
     notes = log.problems.notes["odometry"]
     assert len(scans) == 30 and notes["implausible"] == 1 and notes["rebased"] == 1
 
@@ -262,7 +262,7 @@ def test_odometry_hole_is_counted_and_its_motion_stamped_at_its_end(tmp_path):
     odom = [k for k, ln in enumerate(lines) if ln.startswith("ODOM")]
     keep = [ln for k, ln in enumerate(lines) if k not in odom[10:16]]
     log = open_log(write(tmp_path, "\n".join(keep) + "\n"))
-    scans, odo, ev = scans_and_odometry(log)
+    _scans, odo, ev = scans_and_odometry(log)
     notes = log.problems.notes["odometry"]
     assert notes["holes"] == 1 and notes["hole_seconds"] == pytest.approx(7.0)
     assert [e.t for e in ev] == sorted(e.t for e in ev)

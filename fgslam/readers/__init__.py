@@ -51,8 +51,8 @@ def sniff_format(path: StrPath) -> str:
 def open_log(path: StrPath, format: str | None = None, **options: Any):
     """Open a log of any supported sensor-log format; ``options`` go to the reader
     (``tolerant`` for all; CARMEN: ``mode``, ``no_return``, ``timestamps``
-    (``auto``/``ipc``/``logger``/``index``), ``limits``, ``backwards_tolerance``; ROS: ``scan_topic``,
-    ``odom_topic``, ``range_topics``, ``laser_mount``, ``range_mounts``)."""
+    (``auto``/``ipc``/``logger``/``index``), ``limits``, ``backwards_tolerance``; ROS:
+    ``scan_topic``, ``odom_topic``, ``range_topics``, ``laser_mount``, ``range_mounts``)."""
     fmt = format or sniff_format(path)
     if fmt == "fgslam":
         from fgslam.logfile import LogReader

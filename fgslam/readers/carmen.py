@@ -42,16 +42,6 @@ from collections.abc import Iterator
 import numpy as np
 
 from fgslam.events import Event, LaserScan, TruthPose
-from fgslam.readers.sanity import (
-    BACKWARDS_TOLERANCE,
-    MAX_STAMP,
-    MIN_DT,
-    OdometryLimits,
-    choose_clock,
-    implausible,
-    index_stamps,
-    stamp_defects,
-)
 from fgslam.readers.common import (
     ReaderError,
     Source,
@@ -61,6 +51,16 @@ from fgslam.readers.common import (
     derived_config,
     open_lines,
     relative,
+)
+from fgslam.readers.sanity import (
+    BACKWARDS_TOLERANCE,
+    MAX_STAMP,
+    MIN_DT,
+    OdometryLimits,
+    choose_clock,
+    implausible,
+    index_stamps,
+    stamp_defects,
 )
 
 MODES = ("auto", "corrected", "raw")
