@@ -155,6 +155,15 @@ def _cmd_run(args: argparse.Namespace) -> int:
     finally:
         bar.close()
     rep = write_outputs(res, args.out, reader.meta.get("true_map"))
+    from fgslam.dense import write_dense_trajectory
+
+    write_dense_trajectory(
+        Path(args.out) / "trajectory_dense.tum",
+        res.times,
+        res.poses,
+        res.odometry_samples,
+        cfg.odometry.wheelbase,
+    )
     if reader.skipped:
         print(f"skipped {reader.skipped} bad records: {dict(reader.skipped_by_reason)}")
     _reader_notes(reader, rep, args.out)
@@ -539,7 +548,13 @@ def build_parser() -> argparse.ArgumentParser:
         ),
     )
     p.add_argument("trajectory", metavar="TRAJ", help="estimated trajectory (TUM) or run dir")
-    p.add_argument("--reference", required=True, metavar="REF", help="TUM file or log")
+    p.add_argument("--reference", metavar="REF", help="TUM file or log")
+    p.add_argument(
+        "--relations",
+        metavar="FILE",
+        help="relations benchmark file (t1 t2 x y z roll pitch yaw per line): errors of the "
+        "estimate's relative poses; a run dir's trajectory_dense.tum is used when present",
+    )
     p.add_argument("--rpe-delta", type=float, default=1.0, metavar="METRES", help="default 1")
     p.add_argument("--covariances", metavar="FILE", help="pose covariances (for the NEES)")
     p.add_argument("--map", metavar="MAP.json", help="estimated map (for the map error)")

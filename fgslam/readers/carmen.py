@@ -533,3 +533,46 @@ def odometry_check(path: StrPath) -> dict[str, np.ndarray]:
             out["jump"].append(relative(ref, first))
         prev_pose, prev_before, first = rec["pose"], before, None
     return {k: np.array(v) for k, v in out.items()}
+
+
+def odometry_records(path: StrPath) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The odometry of a corrected log record by record, for the relations benchmark:
+    ``(scan_t, scan_poses, odo_t, odo_path)``, the corrected poses at the scans and the
+    cumulative raw odometry (file order: each ``ODOM`` line's increment over the line before
+    it within its scan interval, the repeats after the scans left out) at every ``ODOM``
+    line and scan, sorted by stamp (heading unwrapped)."""
+    scan_t, scan_p, odo_t, odo_p = [], [], [], []
+    odo = np.zeros(3)
+    base: tuple | None = None
+    last = np.zeros(3)
+    after_scan = False
+    for _, text in open_lines(path):
+        f = text.split()
+        if not f or f[0] not in ("ODOM", "FLASER"):
+            continue
+        try:
+            rec = parse_record(f)
+        except _Bad:
+            continue
+        if rec["tag"] == "FLASER":
+            scan_t.append(rec["t"])
+            scan_p.append(rec["pose"])
+            odo_t.append(rec["t"])
+            odo_p.append(odo.copy())
+            base, last, after_scan = rec["pose"], np.zeros(3), True
+            continue
+        if after_scan and (rec["t"] == 0.0 or rec["pose"] == base):
+            after_scan = False
+            continue
+        after_scan = False
+        if base is None:
+            continue
+        rel = relative(base, rec["pose"])
+        odo = compose(odo, relative(last, rel))
+        last = rel
+        odo_t.append(rec["t"])
+        odo_p.append(odo.copy())
+    ot, op = np.array(odo_t), np.array(odo_p).reshape(-1, 3)
+    op[:, 2] = np.unwrap(op[:, 2])
+    order = np.argsort(ot, kind="stable")
+    return np.array(scan_t), np.array(scan_p).reshape(-1, 3), ot[order], op[order]

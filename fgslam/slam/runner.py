@@ -66,6 +66,8 @@ class SlamResult:
     stats: Counter = field(default_factory=Counter)
     batch_seconds: float = 0.0
     landmark_counts: list[int] = field(default_factory=list)  # landmarks after each keyframe
+    # every odometry sample (t, L_r, L_l) in m, for the trajectory between keyframes
+    odometry_samples: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 3)))
 
     @property
     def has_truth(self) -> bool:
@@ -226,6 +228,7 @@ class SlamPipeline:
         o = cfg.odometry
         self._odo_params = OdometryParams(o.wheelbase, o.k_r, o.k_l, o.k_d)
         self._samples: deque[tuple[float, float, float]] = deque()
+        self._all_samples: list[tuple[float, float, float]] = []
         self.truth_t: list[float] = []
         self.truth: list[tuple[float, float, float]] = []
         self.stats: Counter = Counter()
@@ -265,13 +268,13 @@ class SlamPipeline:
             return 0
         if isinstance(ev, OdometryEvent):
             o = self.cfg.odometry
-            self._samples.append(
-                (
-                    ev.t,
-                    ev.ticks_right * o.metres_per_tick_right,
-                    ev.ticks_left * o.metres_per_tick_left,
-                )
+            sample = (
+                ev.t,
+                ev.ticks_right * o.metres_per_tick_right,
+                ev.ticks_left * o.metres_per_tick_left,
             )
+            self._samples.append(sample)
+            self._all_samples.append(sample)
         t0 = time.perf_counter()
         out = self.frontend.add(ev)
         self._fe_wall += time.perf_counter() - t0
@@ -384,8 +387,10 @@ class SlamPipeline:
             if name == "batch":
                 sess.be.run_batch()
             results[name] = _result(sess, name, **common)
+        samples = np.array(self._all_samples, dtype=float).reshape(-1, 3)
         for r in results.values():
             r.stats["frontend_seconds"] = round(self._fe_wall, 3)
+            r.odometry_samples = samples
         self._finished = [results[b] for b in self.backends]
         return self._finished
 
