@@ -53,6 +53,34 @@ class OdometryConfig:
     k_r: float
     k_l: float
     k_d: float
+    # motion error model (factors.odometry.OdometryParams; 0: the paper's eq 5 alone)
+    alpha1: float = 0.0  # rad^2 of turn per rad turned
+    alpha2: float = 0.0  # rad^2 of turn per m travelled
+    alpha3: float = 0.0  # m^2 along track per m travelled
+    alpha4: float = 0.0  # m^2 along track per rad turned
+    alpha5: float = 0.0  # m^2 lateral per m travelled
+    hole_tolerance: float = 0.5  # s without odometry samples that make a hole
+    hole_speed: float = 1.0  # m/s the robot may have moved at in a hole
+    hole_turn_rate: float = 1.0  # rad/s it may have turned at
+
+    def params(self) -> Any:
+        """The :class:`factors.odometry.OdometryParams` of this configuration."""
+        from factors.odometry import OdometryParams
+
+        return OdometryParams(
+            self.wheelbase,
+            self.k_r,
+            self.k_l,
+            self.k_d,
+            self.alpha1,
+            self.alpha2,
+            self.alpha3,
+            self.alpha4,
+            self.alpha5,
+            self.hole_tolerance,
+            self.hole_speed,
+            self.hole_turn_rate,
+        )
 
     @property
     def metres_per_tick_right(self) -> float:
@@ -154,6 +182,7 @@ _POSITIVE = {
     "odometry.wheel_radius_left",
     "odometry.encoder_steps_per_rev",
     "odometry.sample_period",
+    "odometry.hole_tolerance",
     "laser.n_beams",
     "laser.fov_deg",
     "laser.range_resolution",
@@ -174,6 +203,13 @@ _NON_NEGATIVE = {
     "odometry.k_r",
     "odometry.k_l",
     "odometry.k_d",
+    "odometry.alpha1",
+    "odometry.alpha2",
+    "odometry.alpha3",
+    "odometry.alpha4",
+    "odometry.alpha5",
+    "odometry.hole_speed",
+    "odometry.hole_turn_rate",
     "laser.systematic_offset",
     "laser.systematic_per_metre",
     "laser.sigma_time",
@@ -197,7 +233,8 @@ def _build(cls: type, data: Any, path: str, src: str) -> Any:
     if not isinstance(data, dict):
         raise ConfigError(f"{where}: expected a table, got {type(data).__name__}")
     hints = typing.get_type_hints(cls)
-    names = [f.name for f in dataclasses.fields(cls) if f.name != "source"]
+    fields = {f.name: f for f in dataclasses.fields(cls) if f.name != "source"}
+    names = list(fields)
     for key in data:
         if key not in names:
             full = f"{path}.{key}" if path else key
@@ -205,6 +242,8 @@ def _build(cls: type, data: Any, path: str, src: str) -> Any:
     kwargs = {}
     for name in names:
         full = f"{path}.{name}" if path else name
+        if name not in data and fields[name].default is not dataclasses.MISSING:
+            continue  # an optional key (added later: older logs' headers lack it)
         if name not in data:
             raise ConfigError(f"{src}: missing required key '{full}' ({_type_name(hints[name])})")
         kwargs[name] = _convert(hints[name], data[name], full, src)

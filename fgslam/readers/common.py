@@ -23,6 +23,7 @@ import numpy as np
 from fgslam.config import Mount, RobotConfig, load_config
 from fgslam.errors import UserError
 from fgslam.events import Event, OdometryEvent
+from fgslam.readers.sanity import OdometryLimits
 
 StrPath = str | PathLike[str]
 MAX_PROBLEMS = 20
@@ -183,6 +184,7 @@ def derived_config(
         k_r=VIRTUAL_K,
         k_l=VIRTUAL_K,
         k_d=VIRTUAL_K_D,
+        hole_tolerance=OdometryLimits().hole,
     )
     return dataclasses.replace(
         cfg,

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from factors.odometry import OdometryParams, integrate_poses, preintegrate
+from factors.odometry import integrate_poses, preintegrate
 from fgslam.config import RobotConfig
 from fgslam.events import Event, OdometryEvent, TruthPose
 from fgslam.frontend.pipeline import FrontEnd
@@ -226,7 +226,7 @@ class SlamPipeline:
         self.reorder = ReorderBuffer(reorder_window)
         self.frontend = FrontEnd(cfg, sensors)
         o = cfg.odometry
-        self._odo_params = OdometryParams(o.wheelbase, o.k_r, o.k_l, o.k_d)
+        self._odo_params = o.params()
         self._samples: deque[tuple[float, float, float]] = deque()
         self._all_samples: list[tuple[float, float, float]] = []
         self.truth_t: list[float] = []
@@ -287,13 +287,18 @@ class SlamPipeline:
     def _keyframe(self, sf) -> None:
         o = self.cfg.odometry
         samples = self._samples
-        lr, ll = [], []
+        ts, lr, ll = [], [], []
         while samples and samples[0][0] <= sf.t:
-            _, r, l = samples.popleft()
+            t, r, l = samples.popleft()
+            ts.append(t)
             lr.append(r)
             ll.append(l)
-        pre = preintegrate(lr, ll, self._odo_params)
         first = not self.kf_times
+        span = None if first else (self.kf_times[-1], sf.t)
+        pre = preintegrate(lr, ll, self._odo_params, ts, span)
+        if pre.hole_seconds:  # odometry hole: its covariance covers the possible motion
+            self.stats["odometry_hole_intervals"] += 1
+            self.stats["odometry_hole_seconds"] += round(pre.hole_seconds, 3)
         if first:
             self._odo_pose = _truth_at(self.truth_t, self.truth, sf.t)
         elif lr:
