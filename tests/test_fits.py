@@ -188,7 +188,7 @@ def test_corner_covariance_scaled_by_its_residual():
     truth = np.array([0.2, 3.0, wrap_angle(b[2] + math.pi)])
     for _ in range(200):
         r = r0 + rng.normal(0, 0.03, p.size)
-        init = np.array(b) + (0.03, 0.05, -0.05)
+        init = np.array(b) + np.array([0.03, 0.05, -0.05])
         fit = fit_corner(p, r, init, 0.01)
         raw = fit_corner(p, r, init, 0.01, residual_test=None)
         e = fit.params - truth
