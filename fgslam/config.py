@@ -153,6 +153,37 @@ class SonarConfig:
 
 
 @dataclass(frozen=True)
+class FrontendConfig:
+    """The front end's sensor-dependent thresholds; 0 means derived from the laser
+    (:func:`frontend_thresholds`, the rules below; the paper's PLS gives the values in
+    brackets):
+
+    - ``min_points``: a line needs more points than this: the beams in 4 deg,
+      ``ceil(4 deg / angular step)`` [8];
+    - ``outlier`` (m): the range-model threshold of the next-3-points test,
+      ``3.5 sigma_range`` [0.07];
+    - ``spread`` (m): largest std of point-to-line distances, ``1.25 sigma_range`` [0.025];
+    - ``max_line_range`` (m): points farther end lines: where neighbouring beams lie 7 cm
+      apart, ``0.07 m / angular step`` rounded to 0.5 m, at most the laser's maximum range
+      [8.0];
+    - ``map_max_range`` (m): landmarks farther are no association candidates,
+      ``max_line_range + 2`` [10.0].
+
+    ``residual_level``: chi-square level beyond which a line or corner fit's own residual
+    scales its covariance (:func:`fgslam.frontend.fits.residual_scale`), 0 off. Off for the
+    PLS, whose range model the simulator reproduces; the readers' derived configurations
+    (real logs) set 0.99.
+    """
+
+    min_points: int = 0
+    outlier: float = 0.0
+    spread: float = 0.0
+    max_line_range: float = 0.0
+    map_max_range: float = 0.0
+    residual_level: float = 0.0
+
+
+@dataclass(frozen=True)
 class RobotInfo:
     name: str
 
@@ -165,6 +196,7 @@ class RobotConfig:
     odometry: OdometryConfig
     laser: LaserConfig
     sonar: SonarConfig
+    frontend: FrontendConfig = field(default_factory=FrontendConfig)
     source: str = field(default="<default>", compare=False)
 
     def to_dict(self) -> dict[str, Any]:
@@ -173,6 +205,39 @@ class RobotConfig:
         d.pop("source")
         d["sonar"]["arrays"] = list(d["sonar"]["arrays"])
         return d
+
+
+LINE_SPAN_DEG = 4.0  # a line spans more than this many degrees of beams (PLS: 8 beams)
+OUTLIER_SIGMAS = 3.5  # the outlier test, in range sigmas (PLS: 7 cm)
+SPREAD_SIGMAS = 1.25  # the largest point-to-line std, in range sigmas (PLS: 2.5 cm)
+LINE_SPACING = 0.07  # m between neighbouring beams beyond which lines end (PLS: at 8 m)
+MAP_RANGE_MARGIN = 2.0  # m: association candidates this much beyond the line range
+
+
+def frontend_thresholds(cfg: RobotConfig) -> dict[str, Any]:
+    """The front end's sensor-dependent thresholds: the configured ones, the rest derived
+    from the laser (rules in :class:`FrontendConfig`)."""
+    las, fe = cfg.laser, cfg.frontend
+    step = math.radians(las.fov_deg) / max(las.n_beams - 1, 1)
+    out: dict[str, Any] = {
+        "min_points": fe.min_points or math.ceil(math.radians(LINE_SPAN_DEG) / step - 1e-9),
+        "outlier": fe.outlier or OUTLIER_SIGMAS * las.sigma_range,
+        "spread": fe.spread or SPREAD_SIGMAS * las.sigma_range,
+        "max_line_range": fe.max_line_range
+        or min(las.max_range, 0.5 * round(2 * LINE_SPACING / step)),
+    }
+    out["map_max_range"] = fe.map_max_range or out["max_line_range"] + MAP_RANGE_MARGIN
+    out["residual_level"] = fe.residual_level or None
+    return out
+
+
+def map_params(cfg: RobotConfig, base: Any = None) -> Any:
+    """``base`` (default: :class:`fgslam.slam.mapping.MapParams`'s defaults) with the
+    sensor-dependent thresholds of ``cfg`` (:func:`frontend_thresholds`)."""
+    from fgslam.slam.mapping import MapParams
+
+    base = MapParams() if base is None else base
+    return dataclasses.replace(base, max_range=frontend_thresholds(cfg)["map_max_range"])
 
 
 # Fields that must be strictly positive; the rest of the numbers must be finite.
@@ -200,6 +265,12 @@ _POSITIVE = {
     "sonar.arrays.sweep_period",
 }
 _NON_NEGATIVE = {
+    "frontend.min_points",
+    "frontend.outlier",
+    "frontend.spread",
+    "frontend.max_line_range",
+    "frontend.map_max_range",
+    "frontend.residual_level",
     "odometry.k_r",
     "odometry.k_l",
     "odometry.k_d",
@@ -242,7 +313,9 @@ def _build(cls: type, data: Any, path: str, src: str) -> Any:
     kwargs = {}
     for name in names:
         full = f"{path}.{name}" if path else name
-        if name not in data and fields[name].default is not dataclasses.MISSING:
+        f = fields[name]
+        has_default = f.default is not dataclasses.MISSING
+        if name not in data and (has_default or f.default_factory is not dataclasses.MISSING):
             continue  # an optional key (added later: older logs' headers lack it)
         if name not in data:
             raise ConfigError(f"{src}: missing required key '{full}' ({_type_name(hints[name])})")
@@ -279,6 +352,8 @@ def _convert(tp: Any, value: Any, path: str, src: str) -> Any:
         raise ConfigError(f"{where}: expected a positive number, got {value!r}")
     if path in _NON_NEGATIVE and out < 0:
         raise ConfigError(f"{where}: expected a non-negative number, got {value!r}")
+    if path == "frontend.residual_level" and not out < 1:
+        raise ConfigError(f"{where}: expected a level in [0, 1), got {value!r}")
     return out
 
 

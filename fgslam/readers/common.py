@@ -42,6 +42,7 @@ VIRTUAL_K = 0.5  # sigma(L) = k L per sample, each wheel (k_r, k_l)
 VIRTUAL_K_D = 0.1  # sigma(D) = k_d D per sample (acts on the turn of the sample)
 VIRTUAL_STEP = 0.05  # m of travel per sample at most
 VIRTUAL_TURN = math.radians(2.0)  # rad of turn per sample at most
+RESIDUAL_LEVEL = 0.99  # real logs: fit covariances scaled by their residual (FrontendConfig)
 MAX_SAMPLES = 200000  # samples of one increment at most (10 km, 400 turns)
 
 
@@ -191,6 +192,7 @@ def derived_config(
         robot=dataclasses.replace(cfg.robot, name=name),
         laser=laser,
         odometry=odo,
+        frontend=dataclasses.replace(cfg.frontend, residual_level=RESIDUAL_LEVEL),
         source="<derived from the log>",
     )
 

@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 
 from factors.odometry import integrate_poses, preintegrate
 from fgslam.config import RobotConfig
+from fgslam.config import map_params as config_map_params
 from fgslam.events import Event, OdometryEvent, TruthPose
 from fgslam.frontend.pipeline import FrontEnd
 from fgslam.slam import models
@@ -218,6 +219,7 @@ class SlamPipeline:
         self.progress = progress
         self.count_idle = count_idle
         self.sessions: dict[str, _Session] = {}
+        map_params = map_params or config_map_params(cfg)  # sensor-derived thresholds
         for b in backends:
             if b == "ekf":
                 self.sessions[b] = _Session("ekf", map_params)
