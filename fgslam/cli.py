@@ -138,7 +138,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from fgslam.slam.runner import run_slam
 
     reader = open_log(args.log, **_reader_options(args))
-    cfg = load_config(args.config) if args.config else reader.config
+    cfg = load_config(args.config, reader.config) if args.config else reader.config
     d = reader.meta.get("duration")
     total = float(d) if isinstance(d, int | float) else None
     bar = _progress_bar(f"{args.backend}/{args.sensors}")
@@ -509,7 +509,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="laser and sonar fused (the paper), laser only, or sonar only (default fused)",
     )
     p.add_argument(
-        "--config", metavar="ROBOT.toml", help="robot configuration (default: the log's)"
+        "--config",
+        metavar="ROBOT.toml",
+        help="overrides of the log's robot configuration (e.g. fgslam calibrate's snippet)",
     )
     p.add_argument(
         "--tolerant", action="store_true", help="skip malformed records instead of stopping"
@@ -561,6 +563,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-gap", type=float, metavar="S", help="ignore poses this far from REF")
     p.add_argument("--out", metavar="report.json", help="write the report as JSON")
     p.set_defaults(func=_cmd_evaluate)
+
+    from fgslam.calibrate import add_parser as add_calibrate_parser
+
+    add_calibrate_parser(sub)
 
     p = sub.add_parser(
         "compare",

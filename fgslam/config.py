@@ -398,9 +398,17 @@ def _check_consistency(cfg: RobotConfig, src: str) -> None:
             )
 
 
-def load_config(path: str | Path | None = None) -> RobotConfig:
-    """The default robot configuration, overridden by the TOML file at ``path`` if given."""
-    base = _read_toml(default_config_text(), DEFAULT_CONFIG_NAME)
+def load_config(
+    path: str | Path | None = None, base_config: RobotConfig | None = None
+) -> RobotConfig:
+    """The default robot configuration (or ``base_config``, e.g. the one a log reader derived),
+    overridden by the TOML file at ``path`` if given."""
+    if base_config is not None:
+        base = base_config.to_dict()
+    else:
+        base = _read_toml(default_config_text(), DEFAULT_CONFIG_NAME)
+    if path is None and base_config is not None:
+        return base_config
     if path is None:
         return from_dict(base, "<default>")
     path = Path(path)
