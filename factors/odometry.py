@@ -180,16 +180,40 @@ def hole_noise(gap: float, params: OdometryParams) -> NDArray[np.float64]:
     return np.diag((v * v, v * v, w * w))
 
 
-def _gaps(times: ArrayLike | None, span: tuple[float, float] | None, n: int, tol: float):
-    """Gap (s) before each of the n samples and after the last, 0 where within ``tol``."""
+def _gaps(
+    times: ArrayLike | None,
+    span: tuple[float, float] | None,
+    n: int,
+    tol: float,
+    last_sample: float | None = None,
+) -> NDArray[np.float64]:
+    """Hole time (s) to add before each of the n samples (only the first can get any) and
+    after the last (index n), for the keyframe interval ``span`` = (t0, t1).
+
+    A hole is a gap between two odometry samples longer than ``tol`` with a keyframe inside
+    it (scans kept coming); a gap inside one keyframe interval is none. The part of a hole
+    in an interval is counted there, and the part before the first keyframe that could know
+    of it (the gap's elapsed time exceeding ``tol``) there too: so each second of a hole is
+    counted once. ``last_sample``: the time of the last sample at or before t0 (None: t0).
+    """
     out = np.zeros(n + 1)
     if times is None or span is None or not math.isfinite(tol):
         return out
     t = np.asarray(times, dtype=float)
     if t.shape != (n,):
         raise ValueError(f"{t.shape} sample times for {n} samples")
-    g = np.diff(np.concatenate([[span[0]], t, [span[1]]]))
-    return np.where(g > tol, g, 0.0)
+    t0, t1 = span
+    last = t0 if last_sample is None else min(float(last_sample), t0)
+    known = t0 - last > tol  # the gap was already a hole at t0 (counted up to t0)
+    if n == 0:
+        if t1 - last > tol:
+            out[0] = t1 - t0 if known else t1 - last
+        return out
+    if last < t0 and t[0] - last > tol:  # a gap with the keyframe t0 inside it
+        out[0] = t[0] - t0 if known else t[0] - last
+    if t1 - t[-1] > tol:  # the keyframe t1 lies in a gap already longer than tol
+        out[n] = t1 - t[-1]
+    return out
 
 
 def propagate(
@@ -200,11 +224,12 @@ def propagate(
     P0: ArrayLike | None = None,
     times: ArrayLike | None = None,
     span: tuple[float, float] | None = None,
+    last_sample: float | None = None,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Integrate samples from ``start`` (x, y, th) with covariance ``P0`` (world axes) and
     propagate the covariance by eq 4 (and the motion error model). With the samples'
-    ``times`` and the interval's ``span`` (t0, t1), odometry holes (gaps longer than
-    ``params.hole_tolerance``) add :func:`hole_noise` where they lie. Returns the final
+    ``times``, the interval's ``span`` (t0, t1) and the ``last_sample`` time before it,
+    odometry holes (:func:`_gaps`) add :func:`hole_noise` where they lie. Returns the final
     (x, y, th) and its 3x3 covariance."""
     lr = np.atleast_1d(np.asarray(lr, dtype=float))
     ll = np.atleast_1d(np.asarray(ll, dtype=float))
@@ -214,7 +239,7 @@ def propagate(
     if P.shape != (3, 3) or not np.all(np.isfinite(P)):
         raise ValueError("initial covariance must be a finite 3x3 matrix")
     D = params.wheelbase
-    gaps = _gaps(times, span, lr.size, params.hole_tolerance)
+    gaps = _gaps(times, span, lr.size, params.hole_tolerance, last_sample)
     for i, (r, l) in enumerate(zip(lr.tolist(), ll.tolist(), strict=True)):
         if gaps[i]:
             P = P + hole_noise(gaps[i], params)
@@ -274,19 +299,20 @@ def preintegrate(
     params: OdometryParams,
     times: ArrayLike | None = None,
     span: tuple[float, float] | None = None,
+    last_sample: float | None = None,
 ) -> Preintegrated:
     """Integrate the samples between two keyframes in the first keyframe's frame, from the
     identity with zero covariance (plus :data:`COVARIANCE_FLOOR`); an empty interval gives
-    the identity. With the samples' ``times`` and the keyframes' times ``span``, odometry
-    holes get the covariance of :func:`hole_noise` (an interval without samples is one
-    hole when longer than the tolerance)."""
+    the identity. With the samples' ``times``, the keyframes' times ``span`` and the time
+    of the ``last_sample`` before the interval, odometry holes (:func:`_gaps`: gaps longer
+    than the tolerance with a keyframe in them) get the covariance of :func:`hole_noise`."""
     lr = np.atleast_1d(np.asarray(lr, dtype=float))
-    gaps = _gaps(times, span, lr.size, params.hole_tolerance)
+    gaps = _gaps(times, span, lr.size, params.hole_tolerance, last_sample)
     hole = float(gaps.sum())
     if lr.size == 0:
         P = np.eye(3) * COVARIANCE_FLOOR + (hole_noise(hole, params) if hole else 0.0)
         return Preintegrated(gtsam.Pose2(), P, P, 0, hole)
-    (x, y, th), P = propagate(lr, ll, params, times=times, span=span)
+    (x, y, th), P = propagate(lr, ll, params, times=times, span=span, last_sample=last_sample)
     P = P + np.eye(3) * COVARIANCE_FLOOR
     return Preintegrated(
         gtsam.Pose2(x, y, wrap_angle(th)), to_between_covariance(P, th), P, int(lr.size), hole

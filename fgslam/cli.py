@@ -363,9 +363,9 @@ def _add_reader_arguments(p: argparse.ArgumentParser) -> None:
     )
     g.add_argument(
         "--timestamps",
-        choices=["auto", "ipc", "logger", "index"],
-        help="CARMEN: the stamp field to use (default auto: the sound one, else an error); "
-        "index: scans 0.2 s apart",
+        choices=["auto", "ipc", "logger", "index", "header", "bag"],
+        help="CARMEN: the stamp field to use, ipc, logger or index (scans 0.2 s apart); ROS: "
+        "header or bag (record time); default auto: the sound one, else an error",
     )
     g.add_argument("--scan-topic", help="ROS: sensor_msgs/LaserScan topic (default: the only)")
     g.add_argument("--odom-topic", help="ROS: nav_msgs/Odometry topic (default: the only)")

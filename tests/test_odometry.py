@@ -261,28 +261,43 @@ def test_integrator_uses_the_same_model():
 
 
 def test_odometry_hole_covariance():
-    """Samples at 0.01 s, then none for 3 s, then more: the hole adds the covariance of
-    (1 m/s, 1 rad/s) x 3 s where it lies; the same samples without their times, or a gap
-    within the tolerance, add nothing. An interval with no samples at all that lasts 3 s
-    is a hole too."""
+    """Samples every 0.01 s up to 1.0 s, then none until 4.1 s while keyframes come every
+    0.3 s: each second of the 3.1 s hole is counted once over the keyframe intervals (the
+    first keyframe that sees the gap longer than the 0.5 s tolerance takes what came
+    before), each with the covariance of (1 m/s, 1 rad/s) over its part; the interval where
+    the samples resume takes the rest, its heading error moving the motion after it
+    sideways. A gap between two samples inside one keyframe interval (no keyframe in it: a
+    pause of everything, not an odometry hole) adds nothing."""
     p = OdometryParams(
-        0.42, 0.05, 0.05, 0.1, hole_tolerance=1.0, hole_speed=1.0, hole_turn_rate=1.0
+        0.42, 0.05, 0.05, 0.1, hole_tolerance=0.5, hole_speed=1.0, hole_turn_rate=1.0
     )
+    t_all = np.concatenate([0.01 * np.arange(1, 101), 4.1 + 0.01 * np.arange(20)])
+    kf = np.concatenate([[0.0, 1.0], 1.0 + 0.3 * np.arange(1, 11), [4.3]])
+    last, total, pres = None, 0.0, []
+    for t0, t1 in zip(kf[:-1], kf[1:], strict=True):
+        sel = (t_all > t0) & (t_all <= t1)
+        n = int(sel.sum())
+        pre = preintegrate(np.full(n, 0.004), np.full(n, 0.004), p, t_all[sel], (t0, t1), last)
+        if n:
+            last = t_all[sel][-1]
+        total += pre.hole_seconds
+        pres.append(pre)
+    assert total == pytest.approx(3.1)
+    assert pres[0].hole_seconds == 0.0 and pres[1].hole_seconds == 0.0  # 0.3 s: not yet
+    assert pres[2].hole_seconds == pytest.approx(0.6)  # 1.6 - 1.0, first seen at 1.6 s
+    assert pres[3].hole_seconds == pytest.approx(0.3)
+    assert np.diag(pres[3].covariance) == pytest.approx([0.09, 0.09, 0.09], rel=1e-5)
+    resume = pres[-1]  # (4.0, 4.3]: 0.1 s of hole, then 4 cm driven straight
+    plain = preintegrate(np.full(20, 0.004), np.full(20, 0.004), p)
+    d = np.diag(resume.covariance_start - plain.covariance_start)
+    assert resume.hole_seconds == pytest.approx(0.1)
+    assert d[0] == pytest.approx(0.01, rel=1e-3) and d[2] == pytest.approx(0.01, rel=1e-3)
+    assert d[1] > 0.01  # the hole's heading error, carried through the 8 cm after it
+    inner = np.concatenate([0.01 * np.arange(1, 11), 3.1 + 0.01 * np.arange(10)])
     lr = ll = np.full(20, 0.004)
-    t = np.concatenate([0.01 * np.arange(1, 11), 3.1 + 0.01 * np.arange(10)])
-    hole = preintegrate(lr, ll, p, times=t, span=(0.0, 3.2))
-    plain = preintegrate(lr, ll, p)
-    assert hole.hole_seconds == pytest.approx(3.0)
-    assert plain.hole_seconds == 0.0
-    # the heading error of the hole moves the 4 cm driven after it sideways: y grows more
-    d = np.diag(hole.covariance_start - plain.covariance_start)
-    assert d[0] == pytest.approx(9.0, rel=1e-3) and d[2] == pytest.approx(9.0, rel=1e-3)
-    assert d[1] > 9.0
-    ok = preintegrate(lr, ll, p, times=0.01 * np.arange(1, 21), span=(0.0, 0.2))
-    np.testing.assert_allclose(ok.covariance, plain.covariance)
-    empty = preintegrate([], [], p, times=[], span=(10.0, 13.0))
-    assert empty.hole_seconds == 3.0
-    assert np.diag(empty.covariance) == pytest.approx([9.0, 9.0, 9.0], rel=1e-6)
+    pause = preintegrate(lr, ll, p, times=inner, span=(0.0, 3.2), last_sample=0.0)
+    assert pause.hole_seconds == 0.0
+    np.testing.assert_allclose(pause.covariance, preintegrate(lr, ll, p).covariance)
 
 
 def test_default_configuration_params_unchanged():

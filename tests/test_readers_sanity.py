@@ -322,3 +322,19 @@ def test_reader_fuzz_huge_infinite_nan_fields(tmp_path_factory, records, toleran
                 assert n < 4 * MAX_SAMPLES
         except ReaderError:
             pass
+
+
+def test_odometry_hole_through_the_pipeline(tmp_path):
+    """The 7 s hole of the synthetic log, run through SLAM (laser, EKF): the keyframes in it
+    get the hole covariance (counted in the statistics, each second once), not zero motion
+    with full confidence."""
+    from fgslam.slam.runner import run_slam
+
+    text = carmen_text(corrected=False)
+    lines = text.splitlines()
+    odom = [k for k, ln in enumerate(lines) if ln.startswith("ODOM")]
+    keep = [ln for k, ln in enumerate(lines) if k not in odom[10:16]]
+    log = open_log(write(tmp_path, "\n".join(keep) + "\n"))
+    res = run_slam(log, log.config, "ekf", "laser")
+    assert res.stats["odometry_hole_seconds"] == pytest.approx(7.0)
+    assert res.stats["odometry_hole_intervals"] == 6

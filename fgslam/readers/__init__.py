@@ -81,6 +81,8 @@ def open_log(path: StrPath, format: str | None = None, **options: Any):
             "laser_mount",
             "range_mounts",
             "tolerant",
+            "timestamps",
+            "limits",
         )
         return RosBag(path, **{k: v for k, v in options.items() if k in keys})
     if fmt == "victoria":

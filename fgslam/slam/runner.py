@@ -231,6 +231,7 @@ class SlamPipeline:
         self._odo_params = o.params()
         self._samples: deque[tuple[float, float, float]] = deque()
         self._all_samples: list[tuple[float, float, float]] = []
+        self._last_sample_t: float | None = None  # of the samples already preintegrated
         self.truth_t: list[float] = []
         self.truth: list[tuple[float, float, float]] = []
         self.stats: Counter = Counter()
@@ -297,7 +298,9 @@ class SlamPipeline:
             ll.append(l)
         first = not self.kf_times
         span = None if first else (self.kf_times[-1], sf.t)
-        pre = preintegrate(lr, ll, self._odo_params, ts, span)
+        pre = preintegrate(lr, ll, self._odo_params, ts, span, self._last_sample_t)
+        if ts:
+            self._last_sample_t = ts[-1]
         if pre.hole_seconds:  # odometry hole: its covariance covers the possible motion
             self.stats["odometry_hole_intervals"] += 1
             self.stats["odometry_hole_seconds"] += round(pre.hole_seconds, 3)
