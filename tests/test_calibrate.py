@@ -26,7 +26,7 @@ def test_fit_recovers_the_alphas_of_simulated_errors():
     )
     samples, pairs, errs = [], [], []
     t = 0.0
-    for k in range(400):
+    for _ in range(400):
         v, w = rng.uniform(0.0, 0.8), rng.uniform(-1.5, 1.5)
         lr = np.full(10, (v + 0.25 * w) * 0.1)
         ll = np.full(10, (v - 0.25 * w) * 0.1)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import gtsam
@@ -274,7 +275,7 @@ def test_odometry_hole_covariance():
     t_all = np.concatenate([0.01 * np.arange(1, 101), 4.1 + 0.01 * np.arange(20)])
     kf = np.concatenate([[0.0, 1.0], 1.0 + 0.3 * np.arange(1, 11), [4.3]])
     last, total, pres = None, 0.0, []
-    for t0, t1 in zip(kf[:-1], kf[1:], strict=True):
+    for t0, t1 in itertools.pairwise(kf):
         sel = (t_all > t0) & (t_all <= t1)
         n = int(sel.sum())
         pre = preintegrate(np.full(n, 0.004), np.full(n, 0.004), p, t_all[sel], (t0, t1), last)

@@ -20,9 +20,9 @@ stamp is unset (0) or not a time (``timestamps``: ``auto``, ``header``, ``bag``;
 :class:`~fgslam.readers.sanity.OdometryLimits` are an error (strict) or skipped and counted
 (tolerant); gaps in the odometry while scans come are counted as holes. Topic names are
 chosen by option; left out, the only topic of the right type is taken. A bag without such a
-topic is a :class:`ReaderError` listing the topics it has. Header stamps that go backwards are counted: a scan or range
-reading is then skipped, an odometry message's motion is carried into the next one; nothing
-is reordered.
+topic is a :class:`ReaderError` listing the topics it has. Header stamps that go backwards
+are counted: a scan or range reading is then skipped, an odometry message's motion is carried
+into the next one; nothing is reordered.
 """
 
 from __future__ import annotations
