@@ -190,6 +190,8 @@ def _reader_notes(reader, rep: dict, out: str) -> None:
         if back:
             print(f"timestamps going backwards (kept in order, dropped or carried): {back}")
         rep["reader"] = problems.summary()
+        for w in rep["reader"].get("warnings", []):
+            print(f"warning: {w}")
     kind = getattr(reader, "reference_kind", None)
     if kind:
         rep["truth_source"] = kind

@@ -338,3 +338,43 @@ def test_odometry_hole_through_the_pipeline(tmp_path):
     res = run_slam(log, log.config, "ekf", "laser")
     assert res.stats["odometry_hole_seconds"] == pytest.approx(7.0)
     assert res.stats["odometry_hole_intervals"] == 6
+
+
+def test_warnings_for_inputs_with_almost_nothing(tmp_path, capsys):
+    """A log whose odometry never moves, or with 3 scans: one-line warnings in the reader's
+    summary (report.json's "reader") and on the console of fgslam run."""
+    text = carmen_text(corrected=False, n=3, odo_error=(0.0, 0.0, 0.0))
+    lines = []
+    for ln in text.splitlines():  # freeze the odometry at the origin
+        f = ln.split()
+        if f and f[0] == "ODOM":
+            f[1:4] = ["0", "0", "0"]
+        lines.append(" ".join(f))
+    f = write(tmp_path, "\n".join(lines) + "\n")
+    log = open_log(f, mode="raw")
+    list(log)
+    w = log.problems.summary()["warnings"]
+    assert any("only 3 laser scans" in x for x in w)
+    assert any("never moves" in x for x in w)
+    assert (
+        main(
+            [
+                "run",
+                str(f),
+                "--carmen-mode",
+                "raw",
+                "--sensors",
+                "laser",
+                "--backend",
+                "ekf",
+                "--out",
+                str(tmp_path / "out"),
+            ]
+        )
+        == 0
+    )
+    assert "warning: only 3 laser scans" in capsys.readouterr().out
+    import json
+
+    rep = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert any("never moves" in x for x in rep["reader"]["warnings"])

@@ -49,6 +49,7 @@ from fgslam.readers.common import (
     VirtualDrive,
     compose,
     derived_config,
+    input_warnings,
     open_lines,
     relative,
 )
@@ -374,6 +375,7 @@ class CarmenLog(Source):
         pending: list[tuple[float, np.ndarray]] = []  # corrected: ODOMs relative to P_{k-1}
         carried = np.zeros(3)  # motion not yet delivered (an increment)
         have_odom = False
+        n_scans = 0
         for lineno, rec in self._records():
             tag = rec["tag"]
             if tag == "bad":
@@ -484,7 +486,9 @@ class CarmenLog(Source):
             last_scan_t = t
             ranges = ranges.copy()
             ranges[(ranges >= self.no_return) | (ranges <= 0)] = np.nan
+            n_scans += 1
             yield LaserScan(t, ranges)
+        self.problems.notes["warnings"] = input_warnings(n_scans, drive.travel, notes)
 
     def _implausible(self, lineno: int, inc: np.ndarray, dt: float) -> bool:
         """Check an odometry increment over ``dt`` s: False when plausible; else counted and

@@ -238,8 +238,10 @@ class VirtualDrive:
         self.cum_r = self.cum_l = 0.0
         self.tick_r = self.tick_l = 0
         self.t: float | None = None
+        self.travel = 0.0  # m of wheel travel driven (distance plus turning), for warnings
 
     def _tick(self, t: float, lr: float, ll: float) -> OdometryEvent:
+        self.travel += abs(lr + ll) / 2 + abs(lr - ll) / 2
         self.cum_r += lr
         self.cum_l += ll
         tr, tl = round(self.cum_r / self.mr), round(self.cum_l / self.ml)
@@ -282,6 +284,25 @@ class VirtualDrive:
             )
             for i in range(n)
         ]
+
+
+MIN_SCANS = 10  # fewer scans than this: "almost nothing to process"
+
+
+def input_warnings(scans: int, travel: float, odometry: dict[str, Any] | None = None) -> list[str]:
+    """One-line warnings about an input that gives almost nothing to process, no motion, or
+    mostly holes (for the console and ``report.json``)."""
+    out = []
+    if scans < MIN_SCANS:
+        out.append(f"only {scans} laser scans: almost nothing to process")
+    if scans >= 2 and travel < 1e-3:
+        out.append("the odometry never moves: the robot stood still, or the log has no odometry")
+    if odometry and odometry.get("holes"):
+        out.append(
+            f"{odometry['holes']} odometry holes ({odometry.get('hole_seconds', 0):g} s without "
+            "odometry while scans came): their motion is uncertain"
+        )
+    return out
 
 
 class Source:

@@ -44,6 +44,7 @@ from fgslam.readers.common import (
     VirtualDrive,
     compose,
     derived_config,
+    input_warnings,
     relative,
 )
 from fgslam.readers.sanity import MAX_STAMP, OdometryLimits, implausible
@@ -210,6 +211,7 @@ class RosBag(Source):
         last_odom_pose: tuple[float, float, float] | None = None
         last_odom_t = last_delivered_odo = -math.inf
         in_hole = False
+        n_scans = 0
         carried = np.zeros(3)
         array_of = {t: i for i, t in enumerate(self.range_topics)}
         wanted = {self.scan_topic, self.odom_topic, *self.range_topics}
@@ -274,6 +276,7 @@ class RosBag(Source):
                     r = r.copy()
                     bad = ~np.isfinite(r) | (r < msg.range_min) | (r > msg.range_max) | (r <= 0)
                     r[bad] = np.nan
+                    n_scans += 1
                     yield LaserScan(t, r)
                 else:
                     r = float(msg.range)
@@ -281,3 +284,4 @@ class RosBag(Source):
                     if math.isfinite(r) and msg.min_range <= r <= msg.max_range and r > 0:
                         echoes = (SonarEcho("plane", r, 0.0),)
                     yield SonarReading(t, array_of[conn.topic], 0.0, echoes)
+        self.problems.notes["warnings"] = input_warnings(n_scans, drive.travel, self._odo_notes)
