@@ -559,6 +559,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="relations benchmark file (t1 t2 x y z roll pitch yaw per line): errors of the "
         "estimate's relative poses; a run dir's trajectory_dense.tum is used when present",
     )
+    p.add_argument(
+        "--odometry-log",
+        metavar="LOG",
+        help="with --relations: the CARMEN log the run read; relation ends are filled from "
+        "the keyframes and the log's odometry records (the benchmark's method)",
+    )
     p.add_argument("--rpe-delta", type=float, default=1.0, metavar="METRES", help="default 1")
     p.add_argument("--covariances", metavar="FILE", help="pose covariances (for the NEES)")
     p.add_argument("--map", metavar="MAP.json", help="estimated map (for the map error)")

@@ -14,6 +14,7 @@ World frame, poses (x, y, theta) in m and rad, times in s.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -147,22 +148,7 @@ def relations_error(
         p = np.asarray(traj, dtype=float).reshape(-1, 3).copy()
         p[:, 2] = np.unwrap(p[:, 2])
         x1, x2 = _at(tt, p, used[:, 0]), _at(tt, p, used[:, 1])
-    d = _between(x1, x2)
-    tr = np.hypot(d[:, 0] - used[:, 2], d[:, 1] - used[:, 3])
-    rot = np.degrees(np.abs(wrap_angles(d[:, 2] - used[:, 4])))
-    return {
-        "relations": len(r),
-        "relations_used": len(used),
-        "relations_outside": int(len(r) - len(used)),
-        "trans_mean": float(tr.mean()),
-        "trans_std": float(tr.std()),
-        "trans_max": float(tr.max()),
-        "trans_rmse": float(math.sqrt(np.mean(tr**2))),
-        "rot_mean_deg": float(rot.mean()),
-        "rot_std_deg": float(rot.std()),
-        "rot_max_deg": float(rot.max()),
-        "rot_rmse_deg": float(math.sqrt(np.mean(rot**2))),
-    }
+    return _metrics(_between(x1, x2), used, len(r))
 
 
 def dense_times(kf_t: ArrayLike, odo_t: ArrayLike) -> NDArray[np.float64]:
@@ -195,3 +181,127 @@ def write_dense_trajectory(
         return 0
     write_tum(path, t, dense_poses(kf_t, kf_poses, ot, op, t))
     return len(t)
+
+
+def _metrics(d: NDArray, used: NDArray, n: int) -> dict:
+    tr = np.hypot(d[:, 0] - used[:, 2], d[:, 1] - used[:, 3])
+    rot = np.degrees(np.abs(wrap_angles(d[:, 2] - used[:, 4])))
+    return {
+        "relations": n,
+        "relations_used": len(used),
+        "relations_outside": n - len(used),
+        "trans_mean": float(tr.mean()),
+        "trans_std": float(tr.std()),
+        "trans_max": float(tr.max()),
+        "trans_rmse": float(math.sqrt(np.mean(tr**2))),
+        "rot_mean_deg": float(rot.mean()),
+        "rot_std_deg": float(rot.std()),
+        "rot_max_deg": float(rot.max()),
+        "rot_rmse_deg": float(math.sqrt(np.mean(rot**2))),
+    }
+
+
+@dataclass
+class OdometryChain:
+    """A log's odometry records in file order (:func:`fgslam.readers.carmen.odometry_chain`):
+    each record's stamp ``t`` (s), the index of the scan at or before it in the file
+    (``scan``, -1 before the first), whether it is a scan (``is_scan``), the cumulative
+    odometry at it (``poses``, heading unwrapped), and the scans' stamps and reference
+    poses (``scan_t``, ``scan_poses``)."""
+
+    t: NDArray[np.float64]
+    scan: NDArray[np.int64]
+    is_scan: NDArray[np.bool_]
+    poses: NDArray[np.float64]
+    scan_t: NDArray[np.float64]
+    scan_poses: NDArray[np.float64]
+
+    def scan_records(self) -> NDArray[np.int64]:
+        """Record index of each scan."""
+        return np.flatnonzero(self.is_scan)
+
+
+def chain_poses(
+    chain: OdometryChain,
+    estimate: NDArray[np.float64],
+    has: NDArray[np.bool_],
+    t: ArrayLike,
+) -> NDArray[np.float64]:
+    """Poses at times ``t`` from estimated poses at the log's scans (``estimate`` (S, 3),
+    ``has``: which scans have one) and the odometry records: the record nearest in time to
+    t (the benchmark's relation ends are the original scans, each an odometry record), then,
+    of the two scans around that record in file order, the one nearer in time that has an
+    estimate (else the estimated scan nearest in time), composed with the odometry along the
+    file-order chain from that scan to the record."""
+    t = np.asarray(t, dtype=float)
+    order = np.argsort(chain.t, kind="stable")
+    ts = chain.t[order]
+    j = np.clip(np.searchsorted(ts, t), 1, len(ts) - 1)
+    j = order[np.where(np.abs(t - ts[j - 1]) <= np.abs(ts[j] - t), j - 1, j)]
+    rec_of_scan = chain.scan_records()
+    n = len(chain.scan_t)
+    est_idx = np.flatnonzero(has)
+    if not len(est_idx):
+        raise ValueError("no scan has an estimated pose")
+    kb = np.clip(chain.scan[j], 0, n - 1)
+    ka = np.where(chain.is_scan[j], kb, np.minimum(kb + 1, n - 1))
+    pick = np.where(np.abs(chain.scan_t[kb] - t) <= np.abs(chain.scan_t[ka] - t), kb, ka)
+    other = np.where(pick == kb, ka, kb)
+    pick = np.where(has[pick], pick, np.where(has[other], other, -1))
+    missing = pick < 0
+    if missing.any():
+        st = chain.scan_t[est_idx]
+        o = np.argsort(st)
+        q = np.clip(np.searchsorted(st[o], t[missing]), 1, max(len(o) - 1, 1))
+        lo, hi = o[q - 1], o[np.minimum(q, len(o) - 1)]
+        near = np.where(np.abs(st[lo] - t[missing]) <= np.abs(st[hi] - t[missing]), lo, hi)
+        pick[missing] = est_idx[near]
+    rel = _between(chain.poses[rec_of_scan[pick]], chain.poses[j])
+    return _compose(estimate[pick], rel)
+
+
+def estimate_at_scans(
+    chain: OdometryChain, kf_t: ArrayLike, kf_poses: ArrayLike, tol: float = 1e-3
+) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """A run's keyframe poses placed at the log's scans (matched by time within ``tol`` s):
+    (S, 3) poses and which scans have one."""
+    kt = np.asarray(kf_t, dtype=float)
+    kp = np.asarray(kf_poses, dtype=float).reshape(-1, 3)
+    est = np.zeros((len(chain.scan_t), 3))
+    has = np.zeros(len(chain.scan_t), dtype=bool)
+    if not len(kt):
+        return est, has
+    o = np.argsort(kt)
+    q = np.clip(np.searchsorted(kt[o], chain.scan_t), 1, max(len(o) - 1, 1))
+    lo, hi = o[q - 1], o[np.minimum(q, len(o) - 1)]
+    near = np.where(np.abs(kt[lo] - chain.scan_t) <= np.abs(kt[hi] - chain.scan_t), lo, hi)
+    has = np.abs(kt[near] - chain.scan_t) <= tol
+    est[has] = kp[near[has]]
+    return est, has
+
+
+def relations_error_chain(
+    relations: ArrayLike, chain: OdometryChain, estimate: ArrayLike, has: ArrayLike
+) -> dict:
+    """The relations metric (as :func:`relations_error`) with X(t) from estimated poses at
+    the log's scans and the log's odometry records (:func:`chain_poses`); relations whose
+    ends lie outside the estimated scans' time span are left out."""
+    r = np.asarray(relations, dtype=float).reshape(-1, 5)
+    has = np.asarray(has, dtype=bool)
+    if not has.any():
+        raise ValueError("no scan has an estimated pose: nothing to compare")
+    st = chain.scan_t[has]
+    lo, hi = float(st.min()), float(st.max())
+    inside = (np.minimum(r[:, 0], r[:, 1]) >= lo - 1e-9) & (
+        np.maximum(r[:, 0], r[:, 1]) <= hi + 1e-9
+    )
+    used = r[inside]
+    if not len(used):
+        raise ValueError(
+            f"none of the {len(r)} relations lies within the estimate's time span "
+            f"[{lo:.6f}, {hi:.6f}] s: nothing to compare"
+        )
+    est = np.asarray(estimate, dtype=float)
+    x1 = chain_poses(chain, est, has, used[:, 0])
+    x2 = chain_poses(chain, est, has, used[:, 1])
+    return _metrics(_between(x1, x2), used, len(r))

@@ -67,8 +67,13 @@ def load_reference(path: str | Path, **options: Any) -> tuple[np.ndarray, np.nda
     return np.array(t), np.array(poses), reader.meta.get("true_map") or {}, kind
 
 
-def relations_report(traj: Path, relations: str | Path) -> dict[str, Any]:
-    """The relations metric (:func:`fgslam.dense.relations_error`) of a TUM trajectory."""
+def relations_report(
+    traj: Path, relations: str | Path, log: str | Path | None = None
+) -> dict[str, Any]:
+    """The relations metric of a TUM trajectory: with ``log`` (the CARMEN log the run read),
+    the trajectory's poses at the log's scans and the log's odometry records
+    (:func:`fgslam.dense.relations_error_chain`, the benchmark's method); without, the
+    trajectory interpolated (:func:`fgslam.dense.relations_error`; right for a dense one)."""
     from fgslam import dense
 
     t_est, est = _read_tum(traj)
@@ -76,11 +81,25 @@ def relations_report(traj: Path, relations: str | Path) -> dict[str, Any]:
         rel = dense.read_relations(relations)
     except (ValueError, OSError) as exc:
         raise UserError(f"{relations}: not a relations file ({exc})") from None
+    if log is not None:
+        from fgslam.readers import sniff_format
+
+        if sniff_format(log) != "carmen":
+            raise UserError(f"{log}: --odometry-log takes a CARMEN log")
     try:
-        out = dense.relations_error(rel, t_est, est)
+        if log is not None:
+            from fgslam.readers.carmen import odometry_chain
+
+            chain = odometry_chain(log)
+            e, has = dense.estimate_at_scans(chain, t_est, est)
+            out = dense.relations_error_chain(rel, chain, e, has)
+            out["scans_with_estimate"] = int(has.sum())
+        else:
+            out = dense.relations_error(rel, t_est, est)
     except ValueError as exc:
         raise UserError(f"{relations}: {exc}") from None
-    return {"trajectory": str(traj), "file": str(relations), **out}
+    src = {"odometry": str(log)} if log is not None else {}
+    return {"trajectory": str(traj), "file": str(relations), **src, **out}
 
 
 def _relations_text(r: dict[str, Any]) -> str:
@@ -106,7 +125,10 @@ def evaluate_command(args: argparse.Namespace) -> dict[str, Any]:
         traj = traj / "trajectory.tum"
     if not args.reference and not relations:
         raise UserError("nothing to compare with: give --reference, --relations or both")
-    rel_rep = relations_report(dense_traj, relations) if relations else None
+    odo_log = getattr(args, "odometry_log", None)
+    if odo_log:  # the keyframes and the log's own odometry records
+        dense_traj = traj
+    rel_rep = relations_report(dense_traj, relations, odo_log) if relations else None
     if not args.reference:
         assert rel_rep is not None
         return {"relations": rel_rep, "_text": _relations_text(rel_rep)}

@@ -90,23 +90,72 @@ def test_dense_file_and_evaluate_relations(tmp_path, capsys):
 
 @pytest.mark.skipif(not (FREIBURG.with_suffix(".log.gz")).exists(), reason="no shared data")
 def test_known_figures_of_the_corrected_poses():
-    """The corrected (GMapping) poses with the logs' odometry records score the published
-    check figures of ../shared/data/README.md: freiburg-079 0.058 m (+-0.005) and 0.72 deg;
-    intel 0.054 m is missed: 0.061 m here (see docs/readers.md)."""
-    from fgslam.readers.carmen import odometry_records
+    """The corrected (GMapping) poses with the logs' odometry records score the check
+    figures of ../shared/data/README.md: intel 0.054 m and freiburg-079 0.058 m (+-0.005);
+    the odometry alone 7.4 and 6.5 m."""
+    from fgslam.dense import relations_error_chain
+    from fgslam.readers.carmen import odometry_chain
 
-    got = {}
-    for name in (FREIBURG, INTEL):
-        st, sp, ot, op = odometry_records(name.with_suffix(".log.gz"))
+    expect = {INTEL: (0.054, 2983, 7.4), FREIBURG: (0.058, 1685, 6.5)}
+    for name, (trans, n, odo) in expect.items():
+        chain = odometry_chain(name.with_suffix(".log.gz"))
         rel = read_relations(name.with_suffix(".relations"))
-        got[name.name] = relations_error(
-            rel, None, None, kf_t=st, kf_poses=sp, odo_t=ot, odo_path=op, odometry="nearest"
-        )
-    f = got[FREIBURG.name]
-    assert f["relations_used"] == 1685
-    assert f["trans_mean"] == pytest.approx(0.058, abs=0.005)
-    assert f["trans_std"] == pytest.approx(0.042, abs=0.005)
-    assert f["rot_mean_deg"] == pytest.approx(0.72, abs=0.05)
-    i = got[INTEL.name]
-    assert i["relations_used"] == 2983
-    assert i["trans_mean"] == pytest.approx(0.054, abs=0.0075)  # target +-0.005: missed
+        has = np.ones(len(chain.scan_t), dtype=bool)
+        r = relations_error_chain(rel, chain, chain.scan_poses, has)
+        assert r["relations_used"] == n
+        assert r["trans_mean"] == pytest.approx(trans, abs=0.005), name.name
+        o = relations_error_chain(rel, chain, chain.poses[chain.scan_records()], has)
+        assert o["trans_mean"] == pytest.approx(odo, abs=0.05), name.name
+    assert r["rot_mean_deg"] == pytest.approx(0.72, abs=0.05)  # freiburg-079
+
+
+def test_chain_poses_hand_computed():
+    """Scans at t = 0 (estimate (0, 0, 0)) and t = 2 (estimate (0, 5, pi/2)); odometry records
+    in file order: the scan, r1 at 0.5 (1 m ahead), r2 stamped 0.2 (junk: backwards, but
+    2 m ahead in the file), the scan at 2 (3 m ahead), r3 at 2.6 (4 m ahead). End at 0.2 ->
+    record r2, scans around it in the file: 0 and 2, nearer 0: (2, 0, 0). End at 2.5 ->
+    r3, scan 2: (0, 5) moved 1 m along pi/2: (0, 6, pi/2). A scan without an estimate is
+    replaced by its neighbour in the file."""
+    from fgslam.dense import OdometryChain, chain_poses
+
+    ch = OdometryChain(
+        t=np.array([0.0, 0.5, 0.2, 2.0, 2.6]),
+        scan=np.array([0, 0, 0, 1, 1]),
+        is_scan=np.array([True, False, False, True, False]),
+        poses=np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0], [4, 0, 0]], float),
+        scan_t=np.array([0.0, 2.0]),
+        scan_poses=np.zeros((2, 3)),
+    )
+    est = np.array([[0, 0, 0], [0, 5, math.pi / 2]])
+    got = chain_poses(ch, est, np.array([True, True]), [0.2, 2.5])
+    assert got == pytest.approx(np.array([[2, 0, 0], [0, 6, math.pi / 2]]), abs=1e-12)
+    got = chain_poses(ch, est, np.array([False, True]), [0.2])
+    assert got == pytest.approx(np.array([[0, 4, math.pi / 2]]), abs=1e-12)  # from scan 2
+
+
+def test_evaluate_with_the_logs_odometry_records(tmp_path, capsys):
+    """`fgslam evaluate TRAJ --relations R --odometry-log LOG` on a synthetic corrected log:
+    the reference poses as the estimate score 0 on relations between its scans; a file that
+    is no log is a one-line error."""
+    from readers_helpers import carmen_text, path, rel
+
+    from fgslam.evaluation import write_tum
+
+    log = tmp_path / "room.log"
+    text = carmen_text(corrected=True)
+    log.write_text(text)
+    truth = path(30)
+    write_tum(tmp_path / "est.tum", 1.0 + np.arange(30), np.array(truth))
+    r = tmp_path / "r.relations"
+    rows = [
+        f"{1 + k} {3 + k} {' '.join(str(v) for v in rel(truth[k], truth[k + 2])[:2])} 0 0 0 "
+        f"{rel(truth[k], truth[k + 2])[2]}"
+        for k in range(20)
+    ]
+    r.write_text("\n".join(rows) + "\n")
+    args = ["evaluate", str(tmp_path / "est.tum"), "--relations", str(r)]
+    assert main([*args, "--odometry-log", str(log)]) == 0
+    out = capsys.readouterr().out
+    assert "translation 0.000 +- 0.000 m" in out
+    assert main([*args, "--odometry-log", str(tmp_path / "est.tum")]) == 2
+    assert "unknown log format" in capsys.readouterr().err

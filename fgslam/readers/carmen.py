@@ -38,10 +38,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from fgslam.events import Event, LaserScan, TruthPose
+
+if TYPE_CHECKING:
+    from fgslam.dense import OdometryChain
 from fgslam.readers.common import (
     ReaderError,
     Source,
@@ -539,44 +543,69 @@ def odometry_check(path: StrPath) -> dict[str, np.ndarray]:
     return {k: np.array(v) for k, v in out.items()}
 
 
-def odometry_records(path: StrPath) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The odometry of a corrected log record by record, for the relations benchmark:
-    ``(scan_t, scan_poses, odo_t, odo_path)``, the corrected poses at the scans and the
-    cumulative raw odometry (file order: each ``ODOM`` line's increment over the line before
-    it within its scan interval, the repeats after the scans left out) at every ``ODOM``
-    line and scan, sorted by stamp (heading unwrapped)."""
-    scan_t, scan_p, odo_t, odo_p = [], [], [], []
+def odometry_chain(path: StrPath, mode: str = "auto") -> OdometryChain:
+    """The log's odometry record by record in file order, for the relations benchmark
+    (:class:`fgslam.dense.OdometryChain`): every scan and ``ODOM`` line with its own stamp and
+    the cumulative raw odometry at it (corrected logs: each ``ODOM`` line's increment over
+    the line before it within its scan interval, the lines restarting from the scan's
+    corrected pose; raw logs: the ``ODOM`` poses, or without them the scans' odometry
+    fields), and the scans' corrected (reference) poses. File order, not stamps, orders the
+    chain: the stamps of some records go backwards (Intel), their order in the file does
+    not."""
+    from fgslam.dense import OdometryChain
+
+    log = CarmenLog(path, mode=mode, tolerant=True)
+    corrected = log.mode == "corrected"
+    rec_t: list[float] = []
+    rec_scan: list[int] = []  # index of the scan at or before the record in file order
+    is_scan: list[bool] = []
+    chain: list[np.ndarray] = []
+    scan_t: list[float] = []
+    scan_pose: list[tuple] = []
     odo = np.zeros(3)
-    base: tuple | None = None
+    base: tuple | None = None  # corrected: P_{k-1}; raw: the last odometry pose
     last = np.zeros(3)
-    after_scan = False
-    for _, text in open_lines(path):
-        f = text.split()
-        if not f or f[0] not in ("ODOM", "FLASER"):
+    have_odom = False
+    for lineno, rec in log._records(strict=False):
+        tag = rec["tag"]
+        if tag not in ("ODOM", *LASER_TAGS) or lineno in log._repeats:
             continue
-        try:
-            rec = parse_record(f)
-        except _Bad:
+        if tag == "ODOM":
+            have_odom = True
+            if corrected:
+                if base is None:
+                    continue
+                rel = relative(base, rec["pose"])
+                odo = compose(odo, relative(last, rel))
+                last = rel
+            else:
+                if base is not None:
+                    odo = compose(odo, relative(base, rec["pose"]))
+                base = rec["pose"]
+            rec_t.append(rec["t"])
+            rec_scan.append(len(scan_t) - 1)
+            is_scan.append(False)
+            chain.append(odo.copy())
             continue
-        if rec["tag"] == "FLASER":
-            scan_t.append(rec["t"])
-            scan_p.append(rec["pose"])
-            odo_t.append(rec["t"])
-            odo_p.append(odo.copy())
-            base, last, after_scan = rec["pose"], np.zeros(3), True
-            continue
-        if after_scan and (rec["t"] == 0.0 or rec["pose"] == base):
-            after_scan = False
-            continue
-        after_scan = False
-        if base is None:
-            continue
-        rel = relative(base, rec["pose"])
-        odo = compose(odo, relative(last, rel))
-        last = rel
-        odo_t.append(rec["t"])
-        odo_p.append(odo.copy())
-    ot, op = np.array(odo_t), np.array(odo_p).reshape(-1, 3)
-    op[:, 2] = np.unwrap(op[:, 2])
-    order = np.argsort(ot, kind="stable")
-    return np.array(scan_t), np.array(scan_p).reshape(-1, 3), ot[order], op[order]
+        if corrected:
+            base, last = rec["pose"], np.zeros(3)
+        elif not have_odom:
+            if base is not None:
+                odo = compose(odo, relative(base, rec["odom"]))
+            base = rec["odom"]
+        scan_t.append(rec["t"])
+        scan_pose.append(rec["pose"])
+        rec_t.append(rec["t"])
+        rec_scan.append(len(scan_t) - 1)
+        is_scan.append(True)
+        chain.append(odo.copy())
+    c = np.array(chain).reshape(-1, 3)
+    c[:, 2] = np.unwrap(c[:, 2])
+    return OdometryChain(
+        np.array(rec_t),
+        np.array(rec_scan, dtype=int),
+        np.array(is_scan, dtype=bool),
+        c,
+        np.array(scan_t),
+        np.array(scan_pose).reshape(-1, 3),
+    )
