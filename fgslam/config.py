@@ -59,7 +59,7 @@ class OdometryConfig:
     alpha3: float = 0.0  # m^2 along track per m travelled
     alpha4: float = 0.0  # m^2 along track per rad turned
     alpha5: float = 0.0  # m^2 lateral per m travelled
-    hole_tolerance: float = 0.5  # s without odometry samples that make a hole
+    hole_tolerance: float = 0.0  # s without odometry samples that make a hole; 0: off
     hole_speed: float = 1.0  # m/s the robot may have moved at in a hole
     hole_turn_rate: float = 1.0  # rad/s it may have turned at
 
@@ -77,7 +77,7 @@ class OdometryConfig:
             self.alpha3,
             self.alpha4,
             self.alpha5,
-            self.hole_tolerance,
+            self.hole_tolerance or math.inf,
             self.hole_speed,
             self.hole_turn_rate,
         )
@@ -247,7 +247,6 @@ _POSITIVE = {
     "odometry.wheel_radius_left",
     "odometry.encoder_steps_per_rev",
     "odometry.sample_period",
-    "odometry.hole_tolerance",
     "laser.n_beams",
     "laser.fov_deg",
     "laser.range_resolution",
@@ -279,6 +278,7 @@ _NON_NEGATIVE = {
     "odometry.alpha3",
     "odometry.alpha4",
     "odometry.alpha5",
+    "odometry.hole_tolerance",
     "odometry.hole_speed",
     "odometry.hole_turn_rate",
     "laser.systematic_offset",
