@@ -378,3 +378,24 @@ def test_warnings_for_inputs_with_almost_nothing(tmp_path, capsys):
 
     rep = json.loads((tmp_path / "out" / "report.json").read_text())
     assert any("never moves" in x for x in rep["reader"]["warnings"])
+
+
+@pytest.mark.parametrize("ros1", [True, False])
+def test_ros_bag_unset_header_stamps_and_a_jump(tmp_path, ros1):
+    """A bag whose header stamps are all 0: the record times are used (metadata says so);
+    an odometry message 1e6 m off: strict, an error; tolerant, skipped and counted."""
+    from readers_helpers import write_bag
+
+    path = tmp_path / ("z.bag" if ros1 else "z")
+    write_bag(path, ros1, zero_stamps=True, with_range=False)
+    log = open_log(path)
+    scans, _, _ = scans_and_odometry(log)
+    assert log.meta["timestamps"]["used"] == "bag" and len(scans) == 10
+    assert [e.t for e in scans] == pytest.approx(1.0 + 0.1 * np.arange(1, 20, 2))
+    path2 = tmp_path / ("j.bag" if ros1 else "j")
+    write_bag(path2, ros1, with_range=False, jump=7)
+    with pytest.raises(ReaderError, match="implausible odometry"):
+        list(open_log(path2))
+    log = open_log(path2, tolerant=True)
+    list(log)
+    assert log.problems.notes["odometry"]["implausible"] >= 1
