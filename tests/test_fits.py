@@ -8,7 +8,14 @@ import numpy as np
 import pytest
 
 from factors.geometry import wrap_angle
-from fgslam.frontend.fits import FitRejected, corner_ranges, fit_corner, fit_line, line_ranges
+from fgslam.frontend.fits import (
+    RESIDUAL_TEST,
+    FitRejected,
+    corner_ranges,
+    fit_corner,
+    fit_line,
+    line_ranges,
+)
 
 PHI = np.radians(np.arange(-90, 90.01, 0.5))
 
@@ -164,7 +171,7 @@ def test_planar_wall_covariance_unchanged_non_planar_wall_covered():
         for _ in range(400):
             off = rng.normal(0, rough, p.size) if rough else 0.0
             r = r0 + off / c + rng.normal(0, 0.02, p.size)
-            fit = fit_line(p, r, 0.02)
+            fit = fit_line(p, r, 0.02, residual_test=RESIDUAL_TEST)
             raw = fit_line(p, r, 0.02, residual_test=None)
             e = fit.params - truth
             nees.append(e @ np.linalg.solve(fit.cov_random, e))
@@ -189,7 +196,7 @@ def test_corner_covariance_scaled_by_its_residual():
     for _ in range(200):
         r = r0 + rng.normal(0, 0.03, p.size)
         init = np.array(b) + np.array([0.03, 0.05, -0.05])
-        fit = fit_corner(p, r, init, 0.01)
+        fit = fit_corner(p, r, init, 0.01, residual_test=RESIDUAL_TEST)
         raw = fit_corner(p, r, init, 0.01, residual_test=None)
         e = fit.params - truth
         e[0], e[2] = wrap_angle(e[0]), wrap_angle(e[2])

@@ -60,7 +60,7 @@ def _prepare(phi: ArrayLike, r: ArrayLike, min_points: int):
     return phi, r, ok
 
 
-RESIDUAL_TEST = 0.99  # chi-square level beyond which the fit's own residual sets the noise
+RESIDUAL_TEST = 0.99  # a chi-square level for residual_test (the readers' configurations)
 
 
 def residual_scale(res: ArrayLike, n_params: int, sigma_r: float, level: float | None) -> float:
@@ -122,13 +122,14 @@ def fit_line(
     sigma_r: float,
     systematic: Sequence[ArrayLike] = (),
     max_iter: int = 10,
-    residual_test: float | None = RESIDUAL_TEST,
+    residual_test: float | None = None,
 ) -> Fit:
     """Fit (alpha, d) to laser points by minimising squared range residuals.
 
     ``systematic``: per-source systematic range errors (m), each a scalar or one per beam.
-    ``residual_test``: see :func:`residual_scale` (a wall that is not planar, or noisier than
-    ``sigma_r``, gets the covariance of its own residual).
+    ``residual_test``: a chi-square level (e.g. :data:`RESIDUAL_TEST`), see
+    :func:`residual_scale` (a wall that is not planar, or noisier than ``sigma_r``, gets the
+    covariance of its own residual); None (default): the range model alone.
     Raises :class:`FitRejected` (too few points, a line through the sensor, no convergence).
     """
     phi, r, ok = _prepare(phi, r, 3)
@@ -193,7 +194,7 @@ def fit_corner(
     convex: bool = False,
     max_iter: int = 20,
     keep_history: bool = False,
-    residual_test: float | None = RESIDUAL_TEST,
+    residual_test: float | None = None,
 ) -> Fit:
     """Fit a right-angle corner by iterated linear regression (paper eqs 13-19).
 

@@ -23,6 +23,7 @@ import numpy as np
 from fgslam.config import Mount, RobotConfig, load_config
 from fgslam.errors import UserError
 from fgslam.events import Event, OdometryEvent
+from fgslam.frontend.fits import RESIDUAL_TEST
 from fgslam.readers.sanity import OdometryLimits
 
 StrPath = str | PathLike[str]
@@ -42,7 +43,7 @@ VIRTUAL_K = 0.5  # sigma(L) = k L per sample, each wheel (k_r, k_l)
 VIRTUAL_K_D = 0.1  # sigma(D) = k_d D per sample (acts on the turn of the sample)
 VIRTUAL_STEP = 0.05  # m of travel per sample at most
 VIRTUAL_TURN = math.radians(2.0)  # rad of turn per sample at most
-RESIDUAL_LEVEL = 0.99  # real logs: fit covariances scaled by their residual (FrontendConfig)
+RESIDUAL_LEVEL = RESIDUAL_TEST  # real logs: fit covariances scaled by their residual
 MAX_SAMPLES = 200000  # samples of one increment at most (10 km, 400 turns)
 
 
