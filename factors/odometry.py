@@ -23,19 +23,54 @@ from factors.geometry import rot, wrap_angle
 
 @dataclass(frozen=True)
 class OdometryParams:
-    """Wheelbase D (m) and the eq 5 error parameters K_R, K_L, K_D (dimensionless)."""
+    """Wheelbase D (m), the eq 5 error parameters K_R, K_L, K_D (dimensionless), the motion
+    error model and the odometry-hole model.
+
+    Motion error model (added to eq 5; all 0 by default, the paper's model alone), per
+    sample of travel ``ds`` (m) and turn ``dth`` (rad), in the frame of the sample's mean
+    heading: along-track variance ``alpha3 |ds| + alpha4 |dth|`` (m^2), lateral variance
+    ``alpha5 |ds|`` (m^2), turn variance ``alpha1 |dth| + alpha2 |ds|`` (rad^2). These are
+    the four parameters of Probabilistic Robotics' odometry model (rotation from rotation,
+    rotation from translation, translation from translation, translation from rotation)
+    plus a lateral term, with variances proportional to the motion (a random walk) instead
+    of its square, so that the covariance does not depend on how finely the motion is
+    sampled.
+
+    Odometry holes: a gap between consecutive samples (or the interval's ends) longer than
+    ``hole_tolerance`` s gets the covariance of a motion that could have happened in it,
+    ``diag((hole_speed g)^2, (hole_speed g)^2, (hole_turn_rate g)^2)`` for a gap of g s,
+    added where the gap lies in the sequence (so that its heading error spreads into later
+    positions).
+    """
 
     wheelbase: float
     k_r: float
     k_l: float
     k_d: float
+    alpha1: float = 0.0  # rad^2 per rad turned
+    alpha2: float = 0.0  # rad^2 per m travelled
+    alpha3: float = 0.0  # m^2 per m travelled
+    alpha4: float = 0.0  # m^2 per rad turned
+    alpha5: float = 0.0  # m^2 (lateral) per m travelled
+    hole_tolerance: float = math.inf  # s
+    hole_speed: float = 1.0  # m/s
+    hole_turn_rate: float = 1.0  # rad/s
 
     def __post_init__(self) -> None:
-        vals = (self.wheelbase, self.k_r, self.k_l, self.k_d)
+        vals = (self.wheelbase, self.k_r, self.k_l, self.k_d, *self.alphas)
+        vals += (self.hole_speed, self.hole_turn_rate)
         if not all(math.isfinite(v) for v in vals) or self.wheelbase <= 0:
             raise ValueError(f"invalid odometry parameters {self}")
-        if min(self.k_r, self.k_l, self.k_d) < 0:
+        if min(vals[1:]) < 0 or not self.hole_tolerance > 0:
             raise ValueError(f"odometry error parameters must be >= 0: {self}")
+
+    @property
+    def alphas(self) -> tuple[float, float, float, float, float]:
+        return (self.alpha1, self.alpha2, self.alpha3, self.alpha4, self.alpha5)
+
+    @property
+    def has_motion_model(self) -> bool:
+        return any(a > 0 for a in self.alphas)
 
 
 def ticks_to_distances(
@@ -108,15 +143,94 @@ def step_jacobians(
     return F, G
 
 
+def motion_jacobian(th: float, lr: float, ll: float, wheelbase: float) -> NDArray[np.float64]:
+    """Jacobian of one step (eqs 1-3) from heading ``th`` w.r.t. the motion errors [along
+    track (m), lateral (m), turn (rad)] of the motion error model, in world (x, y, th)."""
+    ds = 0.5 * (lr + ll)
+    a = th + 0.5 * (lr - ll) / wheelbase
+    ca, sa = math.cos(a), math.sin(a)
+    return np.array([[ca, -sa, -0.5 * ds * sa], [sa, ca, 0.5 * ds * ca], [0.0, 0.0, 1.0]])
+
+
+def motion_noise(lr: float, ll: float, params: OdometryParams) -> NDArray[np.float64]:
+    """Variances (along track m^2, lateral m^2, turn rad^2) of one sample under the motion
+    error model of :class:`OdometryParams`."""
+    a1, a2, a3, a4, a5 = params.alphas
+    ds = abs(0.5 * (lr + ll))
+    dth = abs((lr - ll) / params.wheelbase)
+    return np.array([a3 * ds + a4 * dth, a5 * ds, a1 * dth + a2 * ds])
+
+
+def step_noise(th: float, lr: float, ll: float, params: OdometryParams) -> NDArray[np.float64]:
+    """Covariance added by one sample from heading ``th`` (world axes): eq 4-5 and the motion
+    error model. Returns (F, Q) with the step's pose Jacobian F: P <- F P F^T + Q."""
+    D = params.wheelbase
+    F, G = step_jacobians(th, lr, ll, D)
+    Qw = np.array((params.k_r**2 * lr * lr, params.k_l**2 * ll * ll, (params.k_d * D) ** 2))
+    Q = (G * Qw) @ G.T
+    if params.has_motion_model:
+        M = motion_jacobian(th, lr, ll, D)
+        Q = Q + (M * motion_noise(lr, ll, params)) @ M.T
+    return F, Q
+
+
+def hole_noise(gap: float, params: OdometryParams) -> NDArray[np.float64]:
+    """Covariance of the motion that could have happened in an odometry hole of ``gap`` s."""
+    v, w = params.hole_speed * gap, params.hole_turn_rate * gap
+    return np.diag((v * v, v * v, w * w))
+
+
+def _gaps(
+    times: ArrayLike | None,
+    span: tuple[float, float] | None,
+    n: int,
+    tol: float,
+    last_sample: float | None = None,
+) -> NDArray[np.float64]:
+    """Hole time (s) to add before each of the n samples (only the first can get any) and
+    after the last (index n), for the keyframe interval ``span`` = (t0, t1).
+
+    A hole is a gap between two odometry samples longer than ``tol`` with a keyframe inside
+    it (scans kept coming); a gap inside one keyframe interval is none. The part of a hole
+    in an interval is counted there, and the part before the first keyframe that could know
+    of it (the gap's elapsed time exceeding ``tol``) there too: so each second of a hole is
+    counted once. ``last_sample``: the time of the last sample at or before t0 (None: t0).
+    """
+    out = np.zeros(n + 1)
+    if times is None or span is None or not math.isfinite(tol):
+        return out
+    t = np.asarray(times, dtype=float)
+    if t.shape != (n,):
+        raise ValueError(f"{t.shape} sample times for {n} samples")
+    t0, t1 = span
+    last = t0 if last_sample is None else min(float(last_sample), t0)
+    known = t0 - last > tol  # the gap was already a hole at t0 (counted up to t0)
+    if n == 0:
+        if t1 - last > tol:
+            out[0] = t1 - t0 if known else t1 - last
+        return out
+    if last < t0 and t[0] - last > tol:  # a gap with the keyframe t0 inside it
+        out[0] = t[0] - t0 if known else t[0] - last
+    if t1 - t[-1] > tol:  # the keyframe t1 lies in a gap already longer than tol
+        out[n] = t1 - t[-1]
+    return out
+
+
 def propagate(
     lr: ArrayLike,
     ll: ArrayLike,
     params: OdometryParams,
     start: ArrayLike = (0.0, 0.0, 0.0),
     P0: ArrayLike | None = None,
+    times: ArrayLike | None = None,
+    span: tuple[float, float] | None = None,
+    last_sample: float | None = None,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Integrate samples from ``start`` (x, y, th) with covariance ``P0`` (world axes) and
-    propagate the covariance by eq 4. Returns the final (x, y, th) and its 3x3 covariance."""
+    propagate the covariance by eq 4 (and the motion error model). With the samples'
+    ``times``, the interval's ``span`` (t0, t1) and the ``last_sample`` time before it,
+    odometry holes (:func:`_gaps`) add :func:`hole_noise` where they lie. Returns the final
+    (x, y, th) and its 3x3 covariance."""
     lr = np.atleast_1d(np.asarray(lr, dtype=float))
     ll = np.atleast_1d(np.asarray(ll, dtype=float))
     _check_distances(lr, ll)
@@ -125,17 +239,20 @@ def propagate(
     if P.shape != (3, 3) or not np.all(np.isfinite(P)):
         raise ValueError("initial covariance must be a finite 3x3 matrix")
     D = params.wheelbase
-    kr2, kl2, kd2D2 = params.k_r**2, params.k_l**2, (params.k_d * D) ** 2
-    for r, l in zip(lr.tolist(), ll.tolist(), strict=True):
-        F, G = step_jacobians(th, r, l, D)
-        Q = np.diag((kr2 * r * r, kl2 * l * l, kd2D2))
-        P = F @ P @ F.T + G @ Q @ G.T
+    gaps = _gaps(times, span, lr.size, params.hole_tolerance, last_sample)
+    for i, (r, l) in enumerate(zip(lr.tolist(), ll.tolist(), strict=True)):
+        if gaps[i]:
+            P = P + hole_noise(gaps[i], params)
+        F, Q = step_noise(th, r, l, params)
+        P = F @ P @ F.T + Q
         ds = 0.5 * (r + l)
         dth = (r - l) / D
         a = th + 0.5 * dth
         x += ds * math.cos(a)
         y += ds * math.sin(a)
         th += dth
+    if gaps[-1]:
+        P = P + hole_noise(gaps[-1], params)
     return np.array([x, y, th]), 0.5 * (P + P.T)
 
 
@@ -152,6 +269,7 @@ class Preintegrated:
     covariance: NDArray[np.float64]
     covariance_start: NDArray[np.float64]
     n_samples: int
+    hole_seconds: float = 0.0  # odometry holes in the interval (s), see OdometryParams
 
     def factor(self, key1: int, key2: int) -> gtsam.BetweenFactorPose2:
         """The between factor for keys ``key1`` -> ``key2``."""
@@ -175,18 +293,29 @@ def to_between_covariance(P_start: ArrayLike, dth: float) -> NDArray[np.float64]
 COVARIANCE_FLOOR = 1e-8
 
 
-def preintegrate(lr: ArrayLike, ll: ArrayLike, params: OdometryParams) -> Preintegrated:
+def preintegrate(
+    lr: ArrayLike,
+    ll: ArrayLike,
+    params: OdometryParams,
+    times: ArrayLike | None = None,
+    span: tuple[float, float] | None = None,
+    last_sample: float | None = None,
+) -> Preintegrated:
     """Integrate the samples between two keyframes in the first keyframe's frame, from the
     identity with zero covariance (plus :data:`COVARIANCE_FLOOR`); an empty interval gives
-    the identity."""
+    the identity. With the samples' ``times``, the keyframes' times ``span`` and the time
+    of the ``last_sample`` before the interval, odometry holes (:func:`_gaps`: gaps longer
+    than the tolerance with a keyframe in them) get the covariance of :func:`hole_noise`."""
     lr = np.atleast_1d(np.asarray(lr, dtype=float))
+    gaps = _gaps(times, span, lr.size, params.hole_tolerance, last_sample)
+    hole = float(gaps.sum())
     if lr.size == 0:
-        eps = np.eye(3) * COVARIANCE_FLOOR
-        return Preintegrated(gtsam.Pose2(), eps, eps, 0)
-    (x, y, th), P = propagate(lr, ll, params)
+        P = np.eye(3) * COVARIANCE_FLOOR + (hole_noise(hole, params) if hole else 0.0)
+        return Preintegrated(gtsam.Pose2(), P, P, 0, hole)
+    (x, y, th), P = propagate(lr, ll, params, times=times, span=span, last_sample=last_sample)
     P = P + np.eye(3) * COVARIANCE_FLOOR
     return Preintegrated(
-        gtsam.Pose2(x, y, wrap_angle(th)), to_between_covariance(P, th), P, int(lr.size)
+        gtsam.Pose2(x, y, wrap_angle(th)), to_between_covariance(P, th), P, int(lr.size), hole
     )
 
 
@@ -204,6 +333,29 @@ def sample_wheel_noise(
     nl = ll + rng.standard_normal(shape) * params.k_l * np.abs(ll)
     nd = D + rng.standard_normal(shape) * params.k_d * D
     return nr, nl, nd
+
+
+def sample_paths(
+    lr: ArrayLike, ll: ArrayLike, params: OdometryParams, n: int, rng: np.random.Generator
+) -> NDArray[np.float64]:
+    """Final poses (n, 3) of ``n`` noisy runs of the samples: eq 5 wheel noise and the motion
+    error model (along-track, lateral and turn errors per sample, variances from the nominal
+    sample), integrated from the origin. For Monte Carlo checks of :func:`propagate`."""
+    lr = np.asarray(lr, dtype=float)
+    ll = np.asarray(ll, dtype=float)
+    nr, nl, nd = sample_wheel_noise(lr, ll, params, n, rng)
+    ds = 0.5 * (nr + nl)
+    dth = (nr - nl) / nd
+    var = np.array([motion_noise(r, l, params) for r, l in zip(lr, ll, strict=True)])
+    var = var.reshape(-1, 3)
+    e = rng.standard_normal((3, n, lr.size)) * np.sqrt(var.T)[:, None, :]
+    dth = dth + e[2]
+    th_after = np.cumsum(dth, axis=1)
+    a = th_after - 0.5 * dth
+    step = ds + e[0]
+    x = np.sum(step * np.cos(a) - e[1] * np.sin(a), axis=1)
+    y = np.sum(step * np.sin(a) + e[1] * np.cos(a), axis=1)
+    return np.column_stack([x, y, th_after[:, -1]])
 
 
 class OdometryIntegrator:
@@ -238,9 +390,8 @@ class OdometryIntegrator:
         p = self.params
         D = p.wheelbase
         if self.track_covariance:
-            F, G = step_jacobians(self._rel[2], lr, ll, D)
-            Q = np.diag((p.k_r**2 * lr * lr, p.k_l**2 * ll * ll, (p.k_d * D) ** 2))
-            self._P = F @ self._P @ F.T + G @ Q @ G.T
+            F, Q = step_noise(self._rel[2], lr, ll, p)
+            self._P = F @ self._P @ F.T + Q
         ds, dth = 0.5 * (lr + ll), (lr - ll) / D
         for state in (self._rel, self.pose):
             a = state[2] + 0.5 * dth

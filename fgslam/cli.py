@@ -53,8 +53,19 @@ OUTPUT_KINDS = {
     "plot-log": "file",
     "evaluate": "file",
     "export-reference": "file",
+    "calibrate": "file",
 }
-INPUT_OPTIONS = ("log", "config", "world", "trajectory", "reference", "covariances", "map")
+INPUT_OPTIONS = (
+    "log",
+    "config",
+    "world",
+    "trajectory",
+    "reference",
+    "covariances",
+    "map",
+    "relations",
+    "odometry_log",
+)
 
 
 def _cmd_config(args: argparse.Namespace) -> int:
@@ -204,6 +215,15 @@ def _cmd_run(args: argparse.Namespace) -> int:
         scans=tap.sample.scans,
         cfg=cfg,
     )
+    from fgslam.dense import write_dense_trajectory
+
+    write_dense_trajectory(
+        Path(args.out) / "trajectory_dense.tum",
+        res.times,
+        res.poses,
+        res.odometry_samples,
+        cfg.odometry.wheelbase,
+    )
     for line in notes:
         print(line)
     _print_summary(rep, args.out)
@@ -333,6 +353,7 @@ def _input_notes(reader, tap: _Tap, results: list) -> tuple[dict, list[str]]:
             notes.append("note: ATE is against the log's reference trajectory, not ground truth")
     if problems is not None and not isinstance(problems, list):
         extra["reader"] = summary  # a foreign reader's own account
+        notes += [f"warning: {w}" for w in summary.get("warnings", [])]
     return extra, notes
 
 
@@ -356,7 +377,7 @@ def _report_partial(rep: dict, out: str) -> int:
 def _reader_options(args: argparse.Namespace) -> dict:
     """Options of the foreign-log readers (fgslam.readers.open_log) from the command line."""
     opts: dict = {"tolerant": getattr(args, "tolerant", False), "format": args.format}
-    for key in ("scan_topic", "odom_topic", "range_topics", "carmen_mode"):
+    for key in ("scan_topic", "odom_topic", "range_topics", "carmen_mode", "timestamps"):
         value = getattr(args, key, None)
         if value:
             opts["mode" if key == "carmen_mode" else key] = value
@@ -532,6 +553,12 @@ def _add_reader_arguments(p: argparse.ArgumentParser) -> None:
         "--carmen-mode",
         choices=["auto", "corrected", "raw"],
         help="CARMEN: corrected log (reference poses, odometry rebuilt) or raw (default auto)",
+    )
+    g.add_argument(
+        "--timestamps",
+        choices=["auto", "ipc", "logger", "index", "header", "bag"],
+        help="CARMEN: the stamp field to use, ipc, logger or index (scans 0.2 s apart); ROS: "
+        "header or bag (record time); default auto: the sound one, else an error",
     )
     g.add_argument("--scan-topic", help="ROS: sensor_msgs/LaserScan topic (default: the only)")
     g.add_argument("--odom-topic", help="ROS: nav_msgs/Odometry topic (default: the only)")
@@ -746,13 +773,29 @@ def build_parser() -> argparse.ArgumentParser:
         ),
     )
     p.add_argument("trajectory", metavar="TRAJ", help="estimated trajectory (TUM) or run dir")
-    p.add_argument("--reference", required=True, metavar="REF", help="TUM file or log")
+    p.add_argument("--reference", metavar="REF", help="TUM file or log")
+    p.add_argument(
+        "--relations",
+        metavar="FILE",
+        help="relations benchmark file (t1 t2 x y z roll pitch yaw per line): errors of the "
+        "estimate's relative poses; a run dir's trajectory_dense.tum is used when present",
+    )
+    p.add_argument(
+        "--odometry-log",
+        metavar="LOG",
+        help="with --relations: the CARMEN log the run read; relation ends are filled from "
+        "the keyframes and the log's odometry records (the benchmark's method)",
+    )
     p.add_argument("--rpe-delta", type=float, default=1.0, metavar="METRES", help="default 1")
     p.add_argument("--covariances", metavar="FILE", help="pose covariances (for the NEES)")
     p.add_argument("--map", metavar="MAP.json", help="estimated map (for the map error)")
     p.add_argument("--max-gap", type=float, metavar="S", help="ignore poses this far from REF")
     p.add_argument("--out", metavar="report.json", help="write the report as JSON")
     p.set_defaults(func=_cmd_evaluate)
+
+    from fgslam.calibrate import add_parser as add_calibrate_parser
+
+    add_calibrate_parser(sub)
 
     p = sub.add_parser(
         "compare",

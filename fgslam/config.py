@@ -53,6 +53,34 @@ class OdometryConfig:
     k_r: float
     k_l: float
     k_d: float
+    # motion error model (factors.odometry.OdometryParams; 0: the paper's eq 5 alone)
+    alpha1: float = 0.0  # rad^2 of turn per rad turned
+    alpha2: float = 0.0  # rad^2 of turn per m travelled
+    alpha3: float = 0.0  # m^2 along track per m travelled
+    alpha4: float = 0.0  # m^2 along track per rad turned
+    alpha5: float = 0.0  # m^2 lateral per m travelled
+    hole_tolerance: float = 0.0  # s without odometry samples that make a hole; 0: off
+    hole_speed: float = 1.0  # m/s the robot may have moved at in a hole
+    hole_turn_rate: float = 1.0  # rad/s it may have turned at
+
+    def params(self) -> Any:
+        """The :class:`factors.odometry.OdometryParams` of this configuration."""
+        from factors.odometry import OdometryParams
+
+        return OdometryParams(
+            self.wheelbase,
+            self.k_r,
+            self.k_l,
+            self.k_d,
+            self.alpha1,
+            self.alpha2,
+            self.alpha3,
+            self.alpha4,
+            self.alpha5,
+            self.hole_tolerance or math.inf,
+            self.hole_speed,
+            self.hole_turn_rate,
+        )
 
     @property
     def metres_per_tick_right(self) -> float:
@@ -125,6 +153,37 @@ class SonarConfig:
 
 
 @dataclass(frozen=True)
+class FrontendConfig:
+    """The front end's sensor-dependent thresholds; 0 means derived from the laser
+    (:func:`frontend_thresholds`, the rules below; the paper's PLS gives the values in
+    brackets):
+
+    - ``min_points``: a line needs more points than this: the beams in 4 deg,
+      ``ceil(4 deg / angular step)`` [8];
+    - ``outlier`` (m): the range-model threshold of the next-3-points test,
+      ``3.5 sigma_range`` [0.07];
+    - ``spread`` (m): largest std of point-to-line distances, ``1.25 sigma_range`` [0.025];
+    - ``max_line_range`` (m): points farther end lines: where neighbouring beams lie 7 cm
+      apart, ``0.07 m / angular step`` rounded to 0.5 m, at most the laser's maximum range
+      [8.0];
+    - ``map_max_range`` (m): landmarks farther are no association candidates,
+      ``max_line_range + 2`` [10.0].
+
+    ``residual_level``: chi-square level beyond which a line or corner fit's own residual
+    scales its covariance (:func:`fgslam.frontend.fits.residual_scale`), 0 off. Off for the
+    PLS, whose range model the simulator reproduces; the readers' derived configurations
+    (real logs) set 0.99.
+    """
+
+    min_points: int = 0
+    outlier: float = 0.0
+    spread: float = 0.0
+    max_line_range: float = 0.0
+    map_max_range: float = 0.0
+    residual_level: float = 0.0
+
+
+@dataclass(frozen=True)
 class RobotInfo:
     name: str
 
@@ -137,6 +196,7 @@ class RobotConfig:
     odometry: OdometryConfig
     laser: LaserConfig
     sonar: SonarConfig
+    frontend: FrontendConfig = field(default_factory=FrontendConfig)
     source: str = field(default="<default>", compare=False)
 
     def to_dict(self) -> dict[str, Any]:
@@ -145,6 +205,39 @@ class RobotConfig:
         d.pop("source")
         d["sonar"]["arrays"] = list(d["sonar"]["arrays"])
         return d
+
+
+LINE_SPAN_DEG = 4.0  # a line spans more than this many degrees of beams (PLS: 8 beams)
+OUTLIER_SIGMAS = 3.5  # the outlier test, in range sigmas (PLS: 7 cm)
+SPREAD_SIGMAS = 1.25  # the largest point-to-line std, in range sigmas (PLS: 2.5 cm)
+LINE_SPACING = 0.07  # m between neighbouring beams beyond which lines end (PLS: at 8 m)
+MAP_RANGE_MARGIN = 2.0  # m: association candidates this much beyond the line range
+
+
+def frontend_thresholds(cfg: RobotConfig) -> dict[str, Any]:
+    """The front end's sensor-dependent thresholds: the configured ones, the rest derived
+    from the laser (rules in :class:`FrontendConfig`)."""
+    las, fe = cfg.laser, cfg.frontend
+    step = math.radians(las.fov_deg) / max(las.n_beams - 1, 1)
+    out: dict[str, Any] = {
+        "min_points": fe.min_points or math.ceil(math.radians(LINE_SPAN_DEG) / step - 1e-9),
+        "outlier": fe.outlier or OUTLIER_SIGMAS * las.sigma_range,
+        "spread": fe.spread or SPREAD_SIGMAS * las.sigma_range,
+        "max_line_range": fe.max_line_range
+        or min(las.max_range, 0.5 * round(2 * LINE_SPACING / step)),
+    }
+    out["map_max_range"] = fe.map_max_range or out["max_line_range"] + MAP_RANGE_MARGIN
+    out["residual_level"] = fe.residual_level or None
+    return out
+
+
+def map_params(cfg: RobotConfig, base: Any = None) -> Any:
+    """``base`` (default: :class:`fgslam.slam.mapping.MapParams`'s defaults) with the
+    sensor-dependent thresholds of ``cfg`` (:func:`frontend_thresholds`)."""
+    from fgslam.slam.mapping import MapParams
+
+    base = MapParams() if base is None else base
+    return dataclasses.replace(base, max_range=frontend_thresholds(cfg)["map_max_range"])
 
 
 # Fields that must be strictly positive; the rest of the numbers must be finite.
@@ -171,9 +264,23 @@ _POSITIVE = {
     "sonar.arrays.sweep_period",
 }
 _NON_NEGATIVE = {
+    "frontend.min_points",
+    "frontend.outlier",
+    "frontend.spread",
+    "frontend.max_line_range",
+    "frontend.map_max_range",
+    "frontend.residual_level",
     "odometry.k_r",
     "odometry.k_l",
     "odometry.k_d",
+    "odometry.alpha1",
+    "odometry.alpha2",
+    "odometry.alpha3",
+    "odometry.alpha4",
+    "odometry.alpha5",
+    "odometry.hole_tolerance",
+    "odometry.hole_speed",
+    "odometry.hole_turn_rate",
     "laser.systematic_offset",
     "laser.systematic_per_metre",
     "laser.sigma_time",
@@ -216,7 +323,8 @@ def _build(cls: type, data: Any, path: str, src: str) -> Any:
     if not isinstance(data, dict):
         raise ConfigError(f"{where}: expected a table, got {type(data).__name__}")
     hints = typing.get_type_hints(cls)
-    names = [f.name for f in dataclasses.fields(cls) if f.name != "source"]
+    fields = {f.name: f for f in dataclasses.fields(cls) if f.name != "source"}
+    names = list(fields)
     for key in data:
         if key not in names:
             full = f"{path}.{key}" if path else key
@@ -224,6 +332,10 @@ def _build(cls: type, data: Any, path: str, src: str) -> Any:
     kwargs = {}
     for name in names:
         full = f"{path}.{name}" if path else name
+        f = fields[name]
+        has_default = f.default is not dataclasses.MISSING
+        if name not in data and (has_default or f.default_factory is not dataclasses.MISSING):
+            continue  # an optional key (added later: older logs' headers lack it)
         if name not in data:
             raise ConfigError(f"{src}: missing required key '{full}' ({_type_name(hints[name])})")
         kwargs[name] = _convert(hints[name], data[name], full, src)
@@ -262,6 +374,8 @@ def _convert(tp: Any, value: Any, path: str, src: str) -> Any:
     top = _MAXIMUM.get(path, _MAX_ANY)
     if abs(out) > top:
         raise ConfigError(f"{where}: {value!r} is not plausible (expected at most {top:g})")
+    if path == "frontend.residual_level" and not out < 1:
+        raise ConfigError(f"{where}: expected a level in [0, 1), got {value!r}")
     return out
 
 
@@ -306,9 +420,17 @@ def _check_consistency(cfg: RobotConfig, src: str) -> None:
             )
 
 
-def load_config(path: str | Path | None = None) -> RobotConfig:
-    """The default robot configuration, overridden by the TOML file at ``path`` if given."""
-    base = _read_toml(default_config_text(), DEFAULT_CONFIG_NAME)
+def load_config(
+    path: str | Path | None = None, base_config: RobotConfig | None = None
+) -> RobotConfig:
+    """The default robot configuration (or ``base_config``, e.g. the one a log reader derived),
+    overridden by the TOML file at ``path`` if given."""
+    if base_config is not None:
+        base = base_config.to_dict()
+    else:
+        base = _read_toml(default_config_text(), DEFAULT_CONFIG_NAME)
+    if path is None and base_config is not None:
+        return base_config
     if path is None:
         return from_dict(base, "<default>")
     return from_dict(_merge(base, _user_file(path)), str(path))

@@ -67,13 +67,71 @@ def load_reference(path: str | Path, **options: Any) -> tuple[np.ndarray, np.nda
     return np.array(t), np.array(poses), reader.meta.get("true_map") or {}, kind
 
 
+def relations_report(
+    traj: Path, relations: str | Path, log: str | Path | None = None
+) -> dict[str, Any]:
+    """The relations metric of a TUM trajectory: with ``log`` (the CARMEN log the run read),
+    the trajectory's poses at the log's scans and the log's odometry records
+    (:func:`fgslam.dense.relations_error_chain`, the benchmark's method); without, the
+    trajectory interpolated (:func:`fgslam.dense.relations_error`; right for a dense one)."""
+    from fgslam import dense
+
+    t_est, est = _read_tum(traj)
+    try:
+        rel = dense.read_relations(relations)
+    except (ValueError, OSError) as exc:
+        raise UserError(f"{relations}: not a relations file ({exc})") from None
+    if log is not None:
+        from fgslam.readers import sniff_format
+
+        if sniff_format(log) != "carmen":
+            raise UserError(f"{log}: --odometry-log takes a CARMEN log")
+    try:
+        if log is not None:
+            from fgslam.readers.carmen import odometry_chain
+
+            chain = odometry_chain(log)
+            e, has = dense.estimate_at_scans(chain, t_est, est)
+            out = dense.relations_error_chain(rel, chain, e, has)
+            out["scans_with_estimate"] = int(has.sum())
+        else:
+            out = dense.relations_error(rel, t_est, est)
+    except ValueError as exc:
+        raise UserError(f"{relations}: {exc}") from None
+    src = {"odometry": str(log)} if log is not None else {}
+    return {"trajectory": str(traj), "file": str(relations), **src, **out}
+
+
+def _relations_text(r: dict[str, Any]) -> str:
+    return (
+        f"relations ({r['relations_used']} of {r['relations']}, {r['trajectory']}): "
+        f"translation {r['trans_mean']:.3f} +- {r['trans_std']:.3f} m (max "
+        f"{r['trans_max']:.3f}), rotation {r['rot_mean_deg']:.2f} +- {r['rot_std_deg']:.2f} "
+        f"deg (max {r['rot_max_deg']:.2f})"
+    )
+
+
 def evaluate_command(args: argparse.Namespace) -> dict[str, Any]:
     traj = Path(args.trajectory)
     map_path = Path(args.map) if args.map else None
+    relations = getattr(args, "relations", None)
+    dense_traj = traj
     if traj.is_dir():
         if map_path is None and (traj / "map.json").exists():
             map_path = traj / "map.json"
+        dense_traj = traj / "trajectory_dense.tum"
+        if not dense_traj.exists():
+            dense_traj = traj / "trajectory.tum"
         traj = traj / "trajectory.tum"
+    if not args.reference and not relations:
+        raise UserError("nothing to compare with: give --reference, --relations or both")
+    odo_log = getattr(args, "odometry_log", None)
+    if odo_log:  # the keyframes and the log's own odometry records
+        dense_traj = traj
+    rel_rep = relations_report(dense_traj, relations, odo_log) if relations else None
+    if not args.reference:
+        assert rel_rep is not None
+        return {"relations": rel_rep, "_text": _relations_text(rel_rep)}
     t_est, est = _read_tum(traj)
     t_ref, ref, true_map, kind = load_reference(args.reference)
     covs = None
@@ -100,6 +158,11 @@ def evaluate_command(args: argparse.Namespace) -> dict[str, Any]:
             raise UserError(f"{map_path}: not a map.json ({exc})") from None
         rep["map_error"] = evaluation.map_error(landmarks, true_map)
     a, r = rep["ate"], rep["rpe"]
+    if r["pairs"] == 0:
+        raise UserError(
+            f"RPE over {r['delta_m']:g} m: the reference never travels that far, nothing to "
+            "compare (give a smaller --rpe-delta)"
+        )
     lines = [
         f"{rep['poses_compared']} poses against the {kind} "
         f"({rep['poses_outside_reference']} outside its time span)",
@@ -116,5 +179,8 @@ def evaluate_command(args: argparse.Namespace) -> dict[str, Any]:
         )
     for k, v in rep.get("map_error", {}).items():
         lines.append(f"map error {k}: median {v['median']:.3f}, mean {v['mean']:.3f} (n={v['n']})")
+    if rel_rep is not None:
+        rep["relations"] = rel_rep
+        lines.append(_relations_text(rel_rep))
     rep["_text"] = "\n".join(lines)
     return rep

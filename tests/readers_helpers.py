@@ -90,11 +90,18 @@ def carmen_text(
 
 
 def write_bag(
-    path, ros1: bool, n: int = 10, backwards_scan: int | None = None, with_range: bool = True
+    path,
+    ros1: bool,
+    n: int = 10,
+    backwards_scan: int | None = None,
+    with_range: bool = True,
+    zero_stamps: bool = False,
+    jump: int | None = None,
 ) -> None:
     """A bag with /scan (181 beams over 180 deg), /odom (two messages per scan, the robot
     advancing 5 cm and turning 0.02 rad per message) and /sonar (sensor_msgs/Range, one
-    out-of-range reading)."""
+    out-of-range reading). ``zero_stamps``: every header stamp 0 (the record times stay);
+    ``jump``: odometry message ``jump`` 1e6 m off."""
     from rosbags.typesys import Stores, get_typestore
 
     ts = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
@@ -102,6 +109,8 @@ def write_bag(
     Header, Time = T["std_msgs/msg/Header"], T["builtin_interfaces/msg/Time"]
 
     def hdr(t, frame):
+        if zero_stamps:  # an unset header: the bag's record time is the only clock
+            t = 0.0
         sec = math.floor(t)
         kw = {"stamp": Time(sec=sec, nanosec=round((t - sec) * 1e9)), "frame_id": frame}
         if ros1:
@@ -133,6 +142,8 @@ def write_bag(
                 x += 0.05 * math.cos(0.02 * j + 0.01)
                 y += 0.05 * math.sin(0.02 * j + 0.01)
             q = g["Quaternion"](x=0.0, y=0.0, z=math.sin(th / 2), w=math.cos(th / 2))
+            if jump is not None and k == jump:
+                x += 1e6  # a corrupt odometry message
             pose = g["Pose"](position=g["Point"](x=x, y=y, z=0.0), orientation=q)
             odom = T["nav_msgs/msg/Odometry"](
                 header=hdr(t, "odom"),

@@ -135,3 +135,63 @@ def test_contradicting_the_log_names_both(tmp_path):
     with pytest.raises(ConfigError, match=r"1 sonar arrays, but the log x\.log has 2"):
         check_against_log(override_config(log_cfg, p), log_cfg, "x.log")
     check_against_log(log_cfg, log_cfg, "x.log")
+
+
+def test_frontend_thresholds_pls_defaults_exactly_as_before():
+    """The paper's PLS (361 beams over 180 deg, sigma 2 cm, 30 m) derives exactly the
+    front end's and the map's former constants."""
+    from fgslam.frontend.pipeline import FrontEndParams, frontend_params
+    from fgslam.frontend.segmentation import SegmentParams
+    from fgslam.slam.mapping import MapParams
+
+    cfg = load_config()
+    assert frontend_params(cfg) == FrontEndParams()
+    seg = frontend_params(cfg).segment
+    assert (seg.min_points, seg.max_range, seg.outlier, seg.spread) == (8, 8.0, 0.07, 0.025)
+    assert seg == SegmentParams()
+    from fgslam.config import map_params
+
+    assert map_params(cfg) == MapParams() and map_params(cfg).max_range == 10.0
+
+
+def test_frontend_thresholds_derived_from_another_laser(tmp_path):
+    """A SICK LMS at 1 deg, sigma 1 cm, 80 m (the CARMEN logs): 4 beams, 3.5 cm, 1.25 cm,
+    4 m (beams 7 cm apart), 6 m; configured values win over derived ones."""
+    import dataclasses
+
+    from fgslam.config import frontend_thresholds
+    from fgslam.readers.common import derived_config
+
+    cfg = derived_config(181, 180.0, max_range=80.0, sigma_range=0.01)
+    assert frontend_thresholds(cfg) == pytest.approx(
+        {
+            "min_points": 4,
+            "outlier": 0.035,
+            "spread": 0.0125,
+            "max_line_range": 4.0,
+            "map_max_range": 6.0,
+            "residual_level": 0.99,
+        }
+    )
+    assert frontend_thresholds(load_config())["residual_level"] is None  # PLS: off
+    f = tmp_path / "r.toml"
+    f.write_text("[frontend]\nmax_line_range = 12.0\nmin_points = 6\n")
+    user = load_config(f)
+    th = frontend_thresholds(dataclasses.replace(user, laser=cfg.laser))
+    assert th["max_line_range"] == 12.0 and th["min_points"] == 6 and th["map_max_range"] == 14.0
+    f.write_text("[frontend]\nmin_points = -1\n")
+    with pytest.raises(ConfigError, match=r"frontend\.min_points"):
+        load_config(f)
+
+
+def test_old_configuration_without_new_keys_still_loads():
+    """A log header written before the odometry error model and the [frontend] section
+    existed: the new keys take their defaults."""
+    d = load_config().to_dict()
+    del d["frontend"]
+    for k in ("alpha1", "alpha2", "alpha3", "alpha4", "alpha5", "hole_tolerance"):
+        del d["odometry"][k]
+    from fgslam.config import from_dict
+
+    cfg = from_dict(d, "old header")
+    assert cfg.odometry.alpha1 == 0.0 and cfg.frontend.min_points == 0

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import gtsam
@@ -180,3 +181,130 @@ def test_heading_is_wrapped_in_preintegration():
     # 3 pi of turning wraps to pi
     assert abs(wrap_angles(pre.delta.theta() - 3 * math.pi)) < 1e-9
     assert -math.pi < pre.delta.theta() <= math.pi
+
+
+# ------------------------------------------------------------------ motion error model, holes
+
+ALPHA = OdometryParams(
+    wheelbase=0.42,
+    k_r=0.02,
+    k_l=0.02,
+    k_d=0.02,
+    alpha1=0.01,
+    alpha2=0.004,
+    alpha3=0.002,
+    alpha4=0.001,
+    alpha5=0.001,
+)
+
+
+def test_motion_jacobian_numeric(rng):
+    """The motion Jacobian against finite differences of one step with along-track, lateral
+    and turn errors (e_t, e_l, e_r): ds + e_t along th + (dth + e_r)/2, e_l across it."""
+    from conftest import numeric_jacobian
+
+    from factors.odometry import motion_jacobian
+
+    for _ in range(30):
+        th, lr, ll, D = rng.uniform(-3, 3), rng.uniform(-0.05, 0.05), rng.uniform(-0.05, 0.05), 0.42
+        ds, dth = 0.5 * (lr + ll), (lr - ll) / D
+
+        def step(e):
+            a = th + 0.5 * (dth + e[2])
+            return np.array(
+                [
+                    (ds + e[0]) * math.cos(a) - e[1] * math.sin(a),
+                    (ds + e[0]) * math.sin(a) + e[1] * math.cos(a),
+                    th + dth + e[2],
+                ]
+            )
+
+        np.testing.assert_allclose(
+            motion_jacobian(th, lr, ll, D), numeric_jacobian(step, np.zeros(3)), atol=1e-8
+        )
+
+
+def test_monte_carlo_motion_error_model():
+    """Sample covariance of noisy runs (wheel noise and the motion error model) against the
+    propagated covariance, on the turning path: stds within 10 %, eigenvalues of P^-1 S
+    within 15 % of 1; the model's lateral and turn terms make it much larger than eq 5's."""
+    from factors.odometry import sample_paths
+
+    rng = np.random.default_rng(77)
+    lr, ll = nominal_path()
+    ends = sample_paths(lr, ll, ALPHA, N_PATHS, rng)
+    mean, P = propagate(lr, ll, ALPHA)
+    S = np.cov((ends - mean).T)
+    np.testing.assert_allclose(np.sqrt(np.diag(S)), np.sqrt(np.diag(P)), rtol=0.10)
+    assert np.all(np.abs(np.linalg.eigvals(np.linalg.solve(P, S)).real - 1.0) < 0.15)
+    base = OdometryParams(0.42, 0.02, 0.02, 0.02)
+    assert np.trace(propagate(lr, ll, base)[1]) < 0.5 * np.trace(P)
+
+
+def test_motion_error_model_does_not_depend_on_the_sampling():
+    """The same motion cut into 10 or 1000 samples: the same covariance (to 2 %) with the
+    motion error model alone (eq 5's per-sample noise would shrink 100 times)."""
+    only = OdometryParams(
+        0.42, 0.0, 0.0, 0.0, alpha1=0.01, alpha2=0.004, alpha3=0.002, alpha4=0.001, alpha5=0.001
+    )
+    P = [propagate(np.full(n, 1.2 / n), np.full(n, 0.8 / n), only)[1] for n in (10, 1000)]
+    np.testing.assert_allclose(np.diag(P[0]), np.diag(P[1]), rtol=0.02, atol=1e-12)
+
+
+def test_integrator_uses_the_same_model():
+    lr, ll = nominal_path()
+    integ = OdometryIntegrator(ALPHA)
+    for i, (r, l) in enumerate(zip(lr, ll, strict=True)):
+        integ.add(0.01 * (i + 1), r, l)
+    np.testing.assert_allclose(
+        integ.keyframe().covariance, preintegrate(lr, ll, ALPHA).covariance, rtol=1e-9
+    )
+
+
+def test_odometry_hole_covariance():
+    """Samples every 0.01 s up to 1.0 s, then none until 4.1 s while keyframes come every
+    0.3 s: each second of the 3.1 s hole is counted once over the keyframe intervals (the
+    first keyframe that sees the gap longer than the 0.5 s tolerance takes what came
+    before), each with the covariance of (1 m/s, 1 rad/s) over its part; the interval where
+    the samples resume takes the rest, its heading error moving the motion after it
+    sideways. A gap between two samples inside one keyframe interval (no keyframe in it: a
+    pause of everything, not an odometry hole) adds nothing."""
+    p = OdometryParams(
+        0.42, 0.05, 0.05, 0.1, hole_tolerance=0.5, hole_speed=1.0, hole_turn_rate=1.0
+    )
+    t_all = np.concatenate([0.01 * np.arange(1, 101), 4.1 + 0.01 * np.arange(20)])
+    kf = np.concatenate([[0.0, 1.0], 1.0 + 0.3 * np.arange(1, 11), [4.3]])
+    last, total, pres = None, 0.0, []
+    for t0, t1 in itertools.pairwise(kf):
+        sel = (t_all > t0) & (t_all <= t1)
+        n = int(sel.sum())
+        pre = preintegrate(np.full(n, 0.004), np.full(n, 0.004), p, t_all[sel], (t0, t1), last)
+        if n:
+            last = t_all[sel][-1]
+        total += pre.hole_seconds
+        pres.append(pre)
+    assert total == pytest.approx(3.1)
+    assert pres[0].hole_seconds == 0.0 and pres[1].hole_seconds == 0.0  # 0.3 s: not yet
+    assert pres[2].hole_seconds == pytest.approx(0.6)  # 1.6 - 1.0, first seen at 1.6 s
+    assert pres[3].hole_seconds == pytest.approx(0.3)
+    assert np.diag(pres[3].covariance) == pytest.approx([0.09, 0.09, 0.09], rel=1e-5)
+    resume = pres[-1]  # (4.0, 4.3]: 0.1 s of hole, then 4 cm driven straight
+    plain = preintegrate(np.full(20, 0.004), np.full(20, 0.004), p)
+    d = np.diag(resume.covariance_start - plain.covariance_start)
+    assert resume.hole_seconds == pytest.approx(0.1)
+    assert d[0] == pytest.approx(0.01, rel=1e-3) and d[2] == pytest.approx(0.01, rel=1e-3)
+    assert d[1] > 0.01  # the hole's heading error, carried through the 8 cm after it
+    inner = np.concatenate([0.01 * np.arange(1, 11), 3.1 + 0.01 * np.arange(10)])
+    lr = ll = np.full(20, 0.004)
+    pause = preintegrate(lr, ll, p, times=inner, span=(0.0, 3.2), last_sample=0.0)
+    assert pause.hole_seconds == 0.0
+    np.testing.assert_allclose(pause.covariance, preintegrate(lr, ll, p).covariance)
+
+
+def test_default_configuration_params_unchanged():
+    """The paper robot's configuration gives eq 5 alone: no motion error model terms."""
+    from fgslam.config import load_config
+
+    p = load_config().odometry.params()
+    assert p == OdometryParams(0.42, 0.05, 0.05, 0.1, hole_tolerance=p.hole_tolerance)
+    assert not p.has_motion_model

@@ -149,17 +149,18 @@ def test_carmen_raw_log(tmp_path):
 
 
 def test_carmen_backwards_scan_is_dropped_and_its_motion_carried(tmp_path):
-    """Scan 10 stamped before scan 9: counted, skipped, never reordered; the odometry to the
-    next scan covers both intervals, so the odometry path is not broken."""
+    """Scan 10 stamped 0.5 s before scan 9 (within the tolerance): counted, skipped, never
+    reordered; the odometry to the next scan covers both intervals, so the odometry path is
+    not broken."""
     f = tmp_path / "back.log"
-    f.write_text(carmen_text(stamp=lambda k: 1.0 + k if k != 10 else 4.5))
+    f.write_text(carmen_text(stamp=lambda k: 1.0 + k if k != 10 else 9.5))
     log = open_log(f)
     events = list(log)
     assert log.problems.backwards == Counter({"FLASER": 1})
     times = [e.t for e in events]
     assert times == sorted(times)
     scans = [e for e in events if isinstance(e, LaserScan)]
-    assert len(scans) == 29 and 4.5 not in [s.t for s in scans]
+    assert len(scans) == 29 and 9.5 not in [s.t for s in scans]
     odo = odometry_between_scans(events, log.config)
     tp = path(30)
     # scan index 9 in the events is log scan 11: motion from scan 9 to 11 (two errors)
@@ -269,11 +270,16 @@ def test_intel_reader():
     events = list(log)
     kinds = Counter(type(e).__name__ for e in events)
     assert kinds["LaserScan"] == kinds["TruthPose"] == 906  # 910 scans, 4 stamped backwards
-    # 4 scans and 1317 of 13 700 ODOM lines stamped before the last delivered event, 150
+    # 4 scans and 1249 of 13 700 ODOM lines stamped before the last delivered event, 150
     # ODOM lines stamped after the scan that follows them: counted, their motion carried
+    # (the 910 repeats of the corrected pose after each scan are not odometry, whatever
+    # their stamp: 68 of them carry junk stamps like 1e-42 instead of 0)
     assert log.problems.backwards == Counter(
-        {"FLASER": 4, "ODOM": 1317, "ODOM after its scan": 150}
+        {"FLASER": 4, "ODOM": 1249, "ODOM after its scan": 150}
     )
+    assert len(log._repeats) == 910
+    assert log.meta["timestamps"]["used"] == "ipc" and not log.meta["timestamps"]["defects"]
+    assert log.problems.summary()["odometry"]["implausible"] == 0
     assert log.problems.skipped_by_reason == Counter({"unknown record NEFF": 910})
     times = [e.t for e in events]
     assert times == sorted(times)
@@ -293,7 +299,12 @@ def test_freiburg_reader():
     log = open_log(FREIBURG)
     assert log.config.laser.n_beams == 360
     n = sum(isinstance(e, LaserScan) for e in log)
-    assert n == 4791 and log.problems.backwards == Counter({"ODOM": 18})
+    # the ODOM lines stamped outside the surrounding scans are repeats of the corrected pose
+    # (not odometry): counted in the metadata, no odometry goes backwards
+    assert n == 4791 and log.problems.backwards == Counter()
+    ts = log.meta["timestamps"]
+    assert ts["used"] == "ipc" and ts["repeat_lines"] == 4791
+    assert ts["repeat_lines_not_stamped_0"] > 0
     d = odometry_check(FREIBURG)
     e = np.hypot(*(d["increment"] - d["corrected"])[:, :2].T)
     g = np.hypot(*(d["global"] - d["corrected"])[:, :2].T)

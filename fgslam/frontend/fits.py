@@ -4,7 +4,10 @@ Both minimise the sum of squared *range* residuals over the beams (bearings phi_
 laser frame; ranges r_i, m) by Gauss-Newton, and give the covariance sigma_r^2 (H^T H)^-1
 plus the paper's worst-case systematic term: each systematic range-error source is propagated
 through the same regression, the absolute contributions are summed, squared and added to the
-diagonal.
+diagonal. Where the fit's own residual exceeds sigma_r beyond chance (a chi-square test at
+:data:`RESIDUAL_TEST`), sigma_r^2 is replaced by the residual variance with the
+degrees-of-freedom correction (:func:`residual_scale`): a wall that is not planar is not a
+confident line.
 
 A fit that cannot be trusted raises :class:`FitRejected` with a short reason code, which the
 front end counts in its per-scan statistics; nothing else escapes.
@@ -43,6 +46,7 @@ class Fit:
     rms: float
     used: NDArray[np.bool_]
     history: list[NDArray[np.float64]] = field(default_factory=list)
+    scale: float = 1.0  # variance factor from the fit's own residual (residual_scale)
 
 
 def _prepare(phi: ArrayLike, r: ArrayLike, min_points: int):
@@ -56,14 +60,36 @@ def _prepare(phi: ArrayLike, r: ArrayLike, min_points: int):
     return phi, r, ok
 
 
-def _covariances(H, sigma_r, systematic, used):
-    """sigma_r^2 (H^T H)^-1, and that plus the systematic worst case on the diagonal."""
+RESIDUAL_TEST = 0.99  # a chi-square level for residual_test (the readers' configurations)
+
+
+def residual_scale(res: ArrayLike, n_params: int, sigma_r: float, level: float | None) -> float:
+    """Variance factor of a fit's random covariance from its own residuals ``res`` (m):
+    ``s^2 / sigma_r^2`` with ``s^2 = sum(res^2) / (n - n_params)`` (the degrees-of-freedom
+    correction) when the residual exceeds the configured sigma beyond chance, i.e. when
+    ``sum(res^2) / sigma_r^2`` exceeds the ``level`` quantile of chi-square with n - n_params
+    degrees of freedom; else 1 (a fit consistent with the range model keeps its covariance).
+    ``level`` None: always 1."""
+    res = np.asarray(res, dtype=float)
+    dof = res.size - n_params
+    if level is None or dof <= 0:
+        return 1.0
+    from scipy.stats import chi2
+
+    q = float(np.sum(res * res)) / sigma_r**2
+    if q <= chi2.ppf(level, dof):
+        return 1.0
+    return q / dof
+
+
+def _covariances(H, sigma_r, systematic, used, scale=1.0):
+    """scale sigma_r^2 (H^T H)^-1, and that plus the systematic worst case on the diagonal."""
     HtH = H.T @ H
     cond = np.linalg.cond(HtH)
     if not np.isfinite(cond) or cond > 1e12:
         raise FitRejected("ill_conditioned", f"condition number {cond:.3g}")
     inv = np.linalg.inv(HtH)
-    cov_random = sigma_r**2 * inv
+    cov_random = scale * sigma_r**2 * inv
     sys_sum = np.zeros(H.shape[1])
     for e in systematic:
         e = np.broadcast_to(np.asarray(e, dtype=float), used.shape)[used]
@@ -96,10 +122,14 @@ def fit_line(
     sigma_r: float,
     systematic: Sequence[ArrayLike] = (),
     max_iter: int = 10,
+    residual_test: float | None = None,
 ) -> Fit:
     """Fit (alpha, d) to laser points by minimising squared range residuals.
 
     ``systematic``: per-source systematic range errors (m), each a scalar or one per beam.
+    ``residual_test``: a chi-square level (e.g. :data:`RESIDUAL_TEST`), see
+    :func:`residual_scale` (a wall that is not planar, or noisier than ``sigma_r``, gets the
+    covariance of its own residual); None (default): the range model alone.
     Raises :class:`FitRejected` (too few points, a line through the sensor, no convergence).
     """
     phi, r, ok = _prepare(phi, r, 3)
@@ -124,9 +154,11 @@ def fit_line(
         raise FitRejected("through_sensor", "the fitted line passes behind the sensor")
     c = np.cos(alpha - p)
     H = np.column_stack([d * np.sin(alpha - p) / c**2, 1.0 / c])
-    cov, cov_random = _covariances(H, sigma_r, systematic, ok)
-    rms = float(np.sqrt(np.mean((rr - d / c) ** 2)))
-    return Fit(np.array([wrap_angle(alpha), d]), cov, cov_random, it, rms, ok)
+    res = rr - d / c
+    scale = residual_scale(res, 2, sigma_r, residual_test)
+    cov, cov_random = _covariances(H, sigma_r, systematic, ok, scale)
+    rms = float(np.sqrt(np.mean(res**2)))
+    return Fit(np.array([wrap_angle(alpha), d]), cov, cov_random, it, rms, ok, scale=scale)
 
 
 # ------------------------------------------------------------------ corners
@@ -162,6 +194,7 @@ def fit_corner(
     convex: bool = False,
     max_iter: int = 20,
     keep_history: bool = False,
+    residual_test: float | None = None,
 ) -> Fit:
     """Fit a right-angle corner by iterated linear regression (paper eqs 13-19).
 
@@ -216,7 +249,9 @@ def fit_corner(
     used = ok & (pred > 0) & (pred <= 2 * r)
     if abs(wrap_angle(b[2] - b[0])) > math.pi / 4:
         raise FitRejected("not_facing", "a wall of the corner faces away from the sensor")
-    cov, cov_random = _covariances(H[used], sigma_r, systematic, used)
-    rms = float(np.sqrt(np.mean((r - pred)[used] ** 2)))
+    res = (r - pred)[used]
+    scale = residual_scale(res, 3, sigma_r, residual_test)
+    cov, cov_random = _covariances(H[used], sigma_r, systematic, used, scale)
+    rms = float(np.sqrt(np.mean(res**2)))
     params = np.array([wrap_angle(b[0]), b[1], wrap_angle(b[2] + math.pi)])
-    return Fit(params, cov, cov_random, it, rms, used, history)
+    return Fit(params, cov, cov_random, it, rms, used, history, scale)

@@ -13,6 +13,7 @@ serves segmentation, clustering, phantom removal and support counts.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections import Counter, deque
 from dataclasses import dataclass, field
@@ -24,7 +25,7 @@ from scipy.spatial import cKDTree
 from factors.corner import corner_to_world, predict_corner
 from factors.geometry import wrap_angle
 from factors.line import line_residual, line_to_world
-from factors.odometry import OdometryIntegrator, OdometryParams
+from factors.odometry import OdometryIntegrator
 from factors.point import point_to_world, predict_point
 from factors.sensor_models import (
     CORNER_ANGULAR,
@@ -68,6 +69,25 @@ class FrontEndParams:
     corner_gap: float = 0.3  # laser only: line ends this close to the intersection
     min_cluster: int = 3  # echoes in a sonar-only point cluster
     sonar_step: float = 0.2  # sonar-only logs without laser: output step (s)
+    residual_level: float | None = None  # fits: residual covariance scaling (None: off)
+
+
+def frontend_params(cfg: RobotConfig, base: FrontEndParams | None = None) -> FrontEndParams:
+    """``base`` (default: the defaults) with the sensor-dependent thresholds of ``cfg``
+    (:func:`fgslam.config.frontend_thresholds`: configured, or derived from the laser; the
+    paper's PLS gives exactly the defaults)."""
+    from fgslam.config import frontend_thresholds
+
+    base = base or FrontEndParams()
+    th = frontend_thresholds(cfg)
+    seg = dataclasses.replace(
+        base.segment,
+        min_points=th["min_points"],
+        max_range=th["max_line_range"],
+        outlier=th["outlier"],
+        spread=th["spread"],
+    )
+    return dataclasses.replace(base, segment=seg, residual_level=th["residual_level"])
 
 
 class FrontEnd:
@@ -80,11 +100,8 @@ class FrontEnd:
         if mode not in MODES:
             raise ValueError(f"unknown front-end mode {mode!r}; expected one of {MODES}")
         self.cfg, self.mode = cfg, mode
-        self.p = params or FrontEndParams()
-        o = cfg.odometry
-        self.odo = OdometryIntegrator(
-            OdometryParams(o.wheelbase, o.k_r, o.k_l, o.k_d), covariance=False
-        )
+        self.p = params or frontend_params(cfg)
+        self.odo = OdometryIntegrator(cfg.odometry.params(), covariance=False)
         self.poses = PoseHistory(keep=4 * self.p.window)
         self.sonar = SonarBuffer(cfg)
         self._first_sonar_t: float | None = None
@@ -251,10 +268,18 @@ class FrontEnd:
     def _line(self, seg: Segment, phi, r, pts: SonarPoints | None, stats) -> Feature | None:
         p, rr = phi[seg.first : seg.last + 1], r[seg.first : seg.last + 1]
         try:
-            fit = fit_line(p, rr, self.cfg.laser.sigma_range, self._systematic(rr))
+            fit = fit_line(
+                p,
+                rr,
+                self.cfg.laser.sigma_range,
+                self._systematic(rr),
+                residual_test=self.p.residual_level,
+            )
         except FitRejected as exc:
             stats[f"lines_rejected_{exc.reason}"] += 1
             return None
+        if fit.scale > 1:  # the residual exceeds the range model: covariance scaled
+            stats["lines_residual_scaled"] += 1
         a, d = fit.params
         ends = []
         for k in (0, -1):  # first and last point projected on the line
@@ -320,10 +345,13 @@ class FrontEnd:
                     self.cfg.laser.sigma_range,
                     self._systematic(r[sl]),
                     convex=convex,
+                    residual_test=self.p.residual_level,
                 )
             except FitRejected as exc:
                 stats[f"corners_rejected_{exc.reason}"] += 1
                 continue
+            if fit.scale > 1:
+                stats["corners_residual_scaled"] += 1
             f = Feature(
                 "corner",
                 fit.params,

@@ -50,8 +50,9 @@ def sniff_format(path: StrPath) -> str:
 
 def open_log(path: StrPath, format: str | None = None, **options: Any):
     """Open a log of any supported sensor-log format; ``options`` go to the reader
-    (``tolerant`` for all; CARMEN: ``mode``, ``no_return``; ROS: ``scan_topic``,
-    ``odom_topic``, ``range_topics``, ``laser_mount``, ``range_mounts``)."""
+    (``tolerant`` for all; CARMEN: ``mode``, ``no_return``, ``timestamps``
+    (``auto``/``ipc``/``logger``/``index``), ``limits``, ``backwards_tolerance``; ROS:
+    ``scan_topic``, ``odom_topic``, ``range_topics``, ``laser_mount``, ``range_mounts``)."""
     fmt = format or sniff_format(path)
     if fmt == "fgslam":
         from fgslam.logfile import LogReader
@@ -60,7 +61,15 @@ def open_log(path: StrPath, format: str | None = None, **options: Any):
     if fmt == "carmen":
         from fgslam.readers.carmen import CarmenLog
 
-        keys = ("mode", "no_return", "tolerant", "reference")
+        keys = (
+            "mode",
+            "no_return",
+            "tolerant",
+            "reference",
+            "timestamps",
+            "limits",
+            "backwards_tolerance",
+        )
         return CarmenLog(path, **{k: v for k, v in options.items() if k in keys})
     if fmt == "ros":
         from fgslam.readers.ros import RosBag
@@ -72,6 +81,8 @@ def open_log(path: StrPath, format: str | None = None, **options: Any):
             "laser_mount",
             "range_mounts",
             "tolerant",
+            "timestamps",
+            "limits",
         )
         return RosBag(path, **{k: v for k, v in options.items() if k in keys})
     if fmt == "victoria":

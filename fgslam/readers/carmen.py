@@ -38,10 +38,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from fgslam.events import Event, LaserScan, TruthPose
+
+if TYPE_CHECKING:
+    from fgslam.dense import OdometryChain
 from fgslam.readers.common import (
     ReaderError,
     Source,
@@ -49,11 +53,23 @@ from fgslam.readers.common import (
     VirtualDrive,
     compose,
     derived_config,
+    input_warnings,
     open_lines,
     relative,
 )
+from fgslam.readers.sanity import (
+    BACKWARDS_TOLERANCE,
+    MAX_STAMP,
+    MIN_DT,
+    OdometryLimits,
+    choose_clock,
+    implausible,
+    index_stamps,
+    stamp_defects,
+)
 
 MODES = ("auto", "corrected", "raw")
+MAX_COORD = 1e7  # m (and rad): a pose field beyond is not a pose
 NO_RETURN = 80.0
 LASER_TAGS = ("FLASER", "ROBOTLASER1")
 USED_TAGS = ("FLASER", "ROBOTLASER1", "ODOM", "TRUEPOS", "PARAM")
@@ -71,6 +87,27 @@ def _floats(tok: list[str], what: str) -> list[float]:
     if not all(math.isfinite(v) for v in out):
         raise _Bad(f"{what}: expected finite numbers")
     return out
+
+
+def _stamp(v: float, what: str) -> float:
+    if not abs(v) < MAX_STAMP:
+        raise _Bad(f"{what}: timestamp {v:.6g} out of range (seconds below {MAX_STAMP:g})")
+    return v
+
+
+def _pose(v: list[float], what: str) -> tuple[float, float, float]:
+    if not (abs(v[0]) < MAX_COORD and abs(v[1]) < MAX_COORD and abs(v[2]) < MAX_COORD):
+        raise _Bad(f"{what}: pose {v[0]:.6g} {v[1]:.6g} {v[2]:.6g} out of range")
+    return (v[0], v[1], v[2])
+
+
+def _logger(tok: str) -> float:
+    """The logger_timestamp field, NaN when it is not a number in range."""
+    try:
+        v = float(tok)
+    except ValueError:
+        return math.nan
+    return v if abs(v) < MAX_STAMP else math.nan
 
 
 def _int(tok: str, what: str) -> int:
@@ -97,9 +134,10 @@ def parse_record(f: list[str]) -> dict:
         return {
             "tag": tag,
             "ranges": np.array(v[:n]),
-            "pose": tuple(v[n : n + 3]),
-            "odom": tuple(v[n + 3 : n + 6]),
-            "t": v[n + 6],
+            "pose": _pose(v[n : n + 3], "FLASER"),
+            "odom": _pose(v[n + 3 : n + 6], "FLASER odometry"),
+            "t": _stamp(v[n + 6], "FLASER"),
+            "t_logger": _logger(f[-1]),
             "fov": 180.0,
             "start": -math.pi / 2,
             "laser_pose": None,
@@ -123,10 +161,11 @@ def parse_record(f: list[str]) -> dict:
         return {
             "tag": tag,
             "ranges": np.array(ranges),
-            "pose": tuple(tail[3:6]),
-            "odom": tuple(tail[3:6]),
-            "laser_pose": tuple(tail[0:3]),
-            "t": tail[11],
+            "pose": _pose(tail[3:6], "ROBOTLASER1"),
+            "odom": _pose(tail[3:6], "ROBOTLASER1"),
+            "laser_pose": _pose(tail[0:3], "ROBOTLASER1 laser"),
+            "t": _stamp(tail[11], "ROBOTLASER1"),
+            "t_logger": _logger(f[-1]),
             "fov": fov,
             "start": head[0],
         }
@@ -134,12 +173,23 @@ def parse_record(f: list[str]) -> dict:
         if len(f) != 10:
             raise _Bad(f"ODOM: expected 10 fields, got {len(f)}")
         v = _floats(f[1:8], "ODOM")
-        return {"tag": tag, "pose": tuple(v[0:3]), "t": v[6]}
+        return {
+            "tag": tag,
+            "pose": _pose(v[0:3], "ODOM"),
+            "t": _stamp(v[6], "ODOM"),
+            "t_logger": _logger(f[-1]),
+        }
     if tag == "TRUEPOS":
         if len(f) != 10:
             raise _Bad(f"TRUEPOS: expected 10 fields, got {len(f)}")
         v = _floats(f[1:8], "TRUEPOS")
-        return {"tag": tag, "pose": tuple(v[0:3]), "odom": tuple(v[3:6]), "t": v[6]}
+        return {
+            "tag": tag,
+            "pose": _pose(v[0:3], "TRUEPOS"),
+            "odom": _pose(v[3:6], "TRUEPOS odometry"),
+            "t": _stamp(v[6], "TRUEPOS"),
+            "t_logger": _logger(f[-1]),
+        }
     if tag == "PARAM":
         if len(f) < 3:
             raise _Bad("PARAM: expected 'PARAM name value ...'")
@@ -159,6 +209,9 @@ class CarmenLog(Source):
         no_return: float = NO_RETURN,
         tolerant: bool = False,
         reference: bool = True,
+        timestamps: str = "auto",
+        limits: OdometryLimits | None = None,
+        backwards_tolerance: float = BACKWARDS_TOLERANCE,
     ) -> None:
         super().__init__(path)
         if mode not in MODES:
@@ -166,7 +219,72 @@ class CarmenLog(Source):
         self.no_return = float(no_return)
         self.tolerant = tolerant
         self.reference = reference
+        self.limits = limits or OdometryLimits()
         self._probe(mode)
+        self._clock_pass(timestamps, backwards_tolerance)
+
+    def _clock_pass(self, requested: str, tolerance: float) -> None:
+        """One pass over the stamps: the repeats of corrected logs (the ODOM line after a
+        scan, stamped 0 or repeating its pose), the defects of both stamp fields, the clock
+        chosen (:func:`fgslam.readers.sanity.choose_clock`) and, unless it is ``ipc``, the
+        stamp of every timed record."""
+        lines: list[int] = []
+        kinds: list[str] = []
+        ipc: list[float] = []
+        logger: list[float] = []
+        self._repeats: set[int] = set()
+        after_scan: tuple | None = None  # pose of the scan just read (corrected logs)
+        odd_repeats = 0
+        for lineno, rec in self._records(strict=False):
+            tag = rec["tag"]
+            if tag not in ("ODOM", *LASER_TAGS):
+                continue
+            if tag == "ODOM" and self.mode == "corrected" and after_scan is not None:
+                if rec["t"] == 0.0 or rec["pose"] == after_scan:
+                    self._repeats.add(lineno)
+                    odd_repeats += rec["t"] != 0.0
+                    after_scan = None
+                    continue
+            after_scan = rec["pose"] if tag in LASER_TAGS else None
+            lines.append(lineno)
+            kinds.append("odometry" if tag == "ODOM" else "scan")
+            ipc.append(rec["t"])
+            logger.append(rec["t_logger"])
+        ln, kd = np.array(lines, dtype=int), np.array(kinds)
+        reports = {}
+        for name, vals in (("ipc", ipc), ("logger", logger)):
+            v = np.array(vals, dtype=float)
+            sc, od = kd == "scan", kd == "odometry"
+            reports[name] = stamp_defects(ln[sc], v[sc], ln[od], v[od], tolerance)
+        clock, record = choose_clock(self.name, reports, requested)
+        self.clock = clock
+        self._stamps: dict[int, float] | None = None
+        if clock == "index":
+            self._stamps = dict(zip(lines, index_stamps(kinds), strict=True))
+        elif clock == "logger":
+            self._stamps = dict(zip(lines, logger, strict=True))
+        self._bad_stamps: set[int] = set()
+        if clock in reports:
+            for v in reports[clock].sporadic.values():
+                self._bad_stamps |= v
+        if self.mode == "corrected":
+            record["repeat_lines"] = len(self._repeats)
+            record["repeat_lines_not_stamped_0"] = int(odd_repeats)
+        self.meta["timestamps"] = record
+        self.problems.notes["timestamps"] = record
+        self._odo_notes: dict = {
+            "holes": 0,
+            "hole_seconds": 0.0,
+            "holes_first": [],
+            "implausible": 0,
+            "rebased": 0,
+            "limits": {
+                "max_speed_m_s": self.limits.max_speed,
+                "max_turn_rate_rad_s": self.limits.max_turn_rate,
+                "hole_s": self.limits.hole,
+            },
+        }
+        self.problems.notes["odometry"] = self._odo_notes
 
     # ------------------------------------------------------------------ header
 
@@ -222,7 +340,6 @@ class CarmenLog(Source):
                 and first["pose"] == first["odom"]
                 and after_first is not None
                 and after_first["tag"] == "ODOM"
-                and after_first["t"] == 0.0
                 and after_first["pose"] == first["pose"]
             )
             mode = "corrected" if corrected else "raw"
@@ -244,12 +361,25 @@ class CarmenLog(Source):
     def __iter__(self) -> Iterator[Event]:
         drive = VirtualDrive(self.config)
         pr = self.problems
+        notes = self._odo_notes
+        limits = self.limits
         last_scan_t = -math.inf
         last_odo_t = -math.inf
+        in_hole = False
+        hole_from = 0.0
+
+        def end_hole(now: float) -> bool:
+            if in_hole:
+                notes["hole_seconds"] = round(notes["hole_seconds"] + now - hole_from, 3)
+            return False
+
         base = (0.0, 0.0, 0.0)  # corrected: P_{k-1}; raw: the last ODOM pose used
+        base_t = -math.inf  # raw: stamp of the record of `base`
+        jumped: tuple | None = None  # raw: pose of the last record skipped as implausible
         pending: list[tuple[float, np.ndarray]] = []  # corrected: ODOMs relative to P_{k-1}
         carried = np.zeros(3)  # motion not yet delivered (an increment)
         have_odom = False
+        n_scans = 0
         for lineno, rec in self._records():
             tag = rec["tag"]
             if tag == "bad":
@@ -258,26 +388,42 @@ class CarmenLog(Source):
             if tag not in USED_TAGS:
                 pr.skip(f"unknown record {tag[:20]}")
                 continue
-            if tag == "PARAM":
+            if tag == "PARAM" or lineno in self._repeats:
                 continue
-            t = rec["t"]
+            t = rec["t"] if self._stamps is None else self._stamps.get(lineno, rec["t"])
+            if lineno in self._bad_stamps:
+                t = math.nan  # a sporadic junk stamp: handled as going backwards
             if tag == "ODOM":
                 if self.mode == "corrected":
-                    if t != 0.0:  # stamp 0: the repeat of the corrected pose after a scan
-                        pending.append((t, relative(base, rec["pose"])))
+                    prev_t, prev = pending[-1] if pending else (last_scan_t, np.zeros(3))
+                    rel = relative(base, rec["pose"])
+                    if self._implausible(lineno, relative(prev, rel), t - prev_t):
+                        continue
+                    pending.append((t, rel))
                     continue
                 if not have_odom:
-                    base, have_odom = rec["pose"], True
-                    last_odo_t = t
+                    base, base_t, have_odom = rec["pose"], t, True
+                    last_odo_t = t if math.isfinite(t) else last_odo_t
                     continue
                 inc = relative(base, rec["pose"])
-                base = rec["pose"]
+                if implausible(inc, t - base_t, limits) is not None:
+                    if jumped is not None and not implausible(
+                        relative(jumped, rec["pose"]), MIN_DT, limits
+                    ):
+                        notes["rebased"] += 1  # the odometry jumped and stayed: restart there
+                        base, base_t, jumped = rec["pose"], t, None
+                    else:
+                        self._implausible(lineno, inc, t - base_t)
+                        jumped = rec["pose"]
+                    continue
+                jumped = None
+                base, base_t = rec["pose"], t
                 carried = compose(carried, inc)
-                if t < last_odo_t or t < last_scan_t:
+                if not (t >= last_odo_t and t >= last_scan_t):
                     pr.backwards["ODOM"] += 1
                     continue
-                last_odo_t = t
-                yield from drive.ticks(t, carried)
+                yield from drive.ticks(t, carried, after=last_scan_t, hole=limits.hole)
+                last_odo_t, in_hole = t, end_hole(t)
                 carried = np.zeros(3)
                 continue
             if tag == "TRUEPOS":
@@ -297,37 +443,69 @@ class CarmenLog(Source):
                     f"{self.n_beams}",
                 )
                 continue
-            backwards = t < last_scan_t or t < last_odo_t
+            backwards = not (t >= last_scan_t and t >= last_odo_t)
             if self.mode == "corrected":
                 # the ODOM lines since scan k-1, relative to P_{k-1}: one sample each when
                 # stamped in order up to this scan, else carried into the next sample
                 emitted = np.zeros(3)
                 for ti, rel in pending if not backwards else ():
                     if last_odo_t <= ti <= t:
-                        yield from drive.ticks(ti, compose(carried, relative(emitted, rel)))
+                        yield from drive.ticks(
+                            ti,
+                            compose(carried, relative(emitted, rel)),
+                            after=last_scan_t,
+                            hole=limits.hole,
+                        )
                         carried, emitted, last_odo_t = np.zeros(3), rel, ti
+                        in_hole = end_hole(ti)
                     else:
-                        pr.backwards["ODOM" if ti < last_odo_t else "ODOM after its scan"] += 1
+                        pr.backwards["ODOM" if not ti >= last_odo_t else "ODOM after its scan"] += 1
                 final = pending[-1][1] if pending else emitted
                 carried = compose(carried, relative(emitted, final))
                 base, pending = rec["pose"], []
             elif not have_odom:  # raw log without ODOM lines: the scan's odometry field
                 if last_scan_t > -math.inf:
-                    carried = compose(carried, relative(base, rec["odom"]))
+                    inc = relative(base, rec["odom"])
+                    if self._implausible(lineno, inc, t - last_scan_t):
+                        inc = np.zeros(3)
+                    carried = compose(carried, inc)
                 base = rec["odom"]
             if backwards:
                 pr.backwards[tag] += 1
                 continue  # the scan is dropped; its motion stays in `carried`
             if (self.mode == "corrected" or not have_odom) and np.any(carried != 0):
-                yield from drive.ticks(t, carried)
+                yield from drive.ticks(t, carried, after=last_scan_t, hole=limits.hole)
                 carried = np.zeros(3)
-                last_odo_t = t
+                last_odo_t, in_hole = t, end_hole(t)
+            elif not have_odom and self.mode == "raw":  # the scan's odometry: no motion
+                last_odo_t, in_hole = t, end_hole(t)
+            if last_odo_t > -math.inf and t - last_odo_t > limits.hole:
+                if not in_hole:  # a hole: no odometry for too long while scans come
+                    notes["holes"] += 1
+                    if len(notes["holes_first"]) < 10:
+                        notes["holes_first"].append({"line": lineno, "from_s": last_odo_t})
+                    in_hole, hole_from = True, last_odo_t
             if self.mode == "corrected" and self.reference:
                 yield TruthPose(t, *rec["pose"])
             last_scan_t = t
             ranges = ranges.copy()
             ranges[(ranges >= self.no_return) | (ranges <= 0)] = np.nan
+            n_scans += 1
             yield LaserScan(t, ranges)
+        self.problems.notes["warnings"] = input_warnings(n_scans, drive.travel, notes)
+
+    def _implausible(self, lineno: int, inc: np.ndarray, dt: float) -> bool:
+        """Check an odometry increment over ``dt`` s: False when plausible; else counted and
+        True (tolerant), or a :class:`ReaderError` naming the line (strict)."""
+        why = implausible(inc, dt, self.limits)
+        if why is None:
+            return False
+        msg = f"{self.name}:{lineno}: implausible odometry: {why}"
+        if not self.tolerant:
+            raise ReaderError(msg + " (--tolerant skips such records)")
+        self._odo_notes["implausible"] += 1
+        self.problems.skip("implausible odometry", msg)
+        return True
 
 
 def odometry_check(path: StrPath) -> dict[str, np.ndarray]:
@@ -363,3 +541,71 @@ def odometry_check(path: StrPath) -> dict[str, np.ndarray]:
             out["jump"].append(relative(ref, first))
         prev_pose, prev_before, first = rec["pose"], before, None
     return {k: np.array(v) for k, v in out.items()}
+
+
+def odometry_chain(path: StrPath, mode: str = "auto") -> OdometryChain:
+    """The log's odometry record by record in file order, for the relations benchmark
+    (:class:`fgslam.dense.OdometryChain`): every scan and ``ODOM`` line with its own stamp and
+    the cumulative raw odometry at it (corrected logs: each ``ODOM`` line's increment over
+    the line before it within its scan interval, the lines restarting from the scan's
+    corrected pose; raw logs: the ``ODOM`` poses, or without them the scans' odometry
+    fields), and the scans' corrected (reference) poses. File order, not stamps, orders the
+    chain: the stamps of some records go backwards (Intel), their order in the file does
+    not."""
+    from fgslam.dense import OdometryChain
+
+    log = CarmenLog(path, mode=mode, tolerant=True)
+    corrected = log.mode == "corrected"
+    rec_t: list[float] = []
+    rec_scan: list[int] = []  # index of the scan at or before the record in file order
+    is_scan: list[bool] = []
+    chain: list[np.ndarray] = []
+    scan_t: list[float] = []
+    scan_pose: list[tuple] = []
+    odo = np.zeros(3)
+    base: tuple | None = None  # corrected: P_{k-1}; raw: the last odometry pose
+    last = np.zeros(3)
+    have_odom = False
+    for lineno, rec in log._records(strict=False):
+        tag = rec["tag"]
+        if tag not in ("ODOM", *LASER_TAGS) or lineno in log._repeats:
+            continue
+        if tag == "ODOM":
+            have_odom = True
+            if corrected:
+                if base is None:
+                    continue
+                rel = relative(base, rec["pose"])
+                odo = compose(odo, relative(last, rel))
+                last = rel
+            else:
+                if base is not None:
+                    odo = compose(odo, relative(base, rec["pose"]))
+                base = rec["pose"]
+            rec_t.append(rec["t"])
+            rec_scan.append(len(scan_t) - 1)
+            is_scan.append(False)
+            chain.append(odo.copy())
+            continue
+        if corrected:
+            base, last = rec["pose"], np.zeros(3)
+        elif not have_odom:
+            if base is not None:
+                odo = compose(odo, relative(base, rec["odom"]))
+            base = rec["odom"]
+        scan_t.append(rec["t"])
+        scan_pose.append(rec["pose"])
+        rec_t.append(rec["t"])
+        rec_scan.append(len(scan_t) - 1)
+        is_scan.append(True)
+        chain.append(odo.copy())
+    c = np.array(chain).reshape(-1, 3)
+    c[:, 2] = np.unwrap(c[:, 2])
+    return OdometryChain(
+        np.array(rec_t),
+        np.array(rec_scan, dtype=int),
+        np.array(is_scan, dtype=bool),
+        c,
+        np.array(scan_t),
+        np.array(scan_pose).reshape(-1, 3),
+    )

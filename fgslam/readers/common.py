@@ -23,6 +23,8 @@ import numpy as np
 from fgslam.config import Mount, RobotConfig, load_config
 from fgslam.errors import UserError
 from fgslam.events import Event, OdometryEvent
+from fgslam.frontend.fits import RESIDUAL_TEST
+from fgslam.readers.sanity import OdometryLimits
 
 StrPath = str | PathLike[str]
 MAX_PROBLEMS = 20
@@ -41,6 +43,8 @@ VIRTUAL_K = 0.5  # sigma(L) = k L per sample, each wheel (k_r, k_l)
 VIRTUAL_K_D = 0.1  # sigma(D) = k_d D per sample (acts on the turn of the sample)
 VIRTUAL_STEP = 0.05  # m of travel per sample at most
 VIRTUAL_TURN = math.radians(2.0)  # rad of turn per sample at most
+RESIDUAL_LEVEL = RESIDUAL_TEST  # real logs: fit covariances scaled by their residual
+MAX_SAMPLES = 200000  # samples of one increment at most (10 km, 400 turns)
 
 
 class ReaderError(UserError, ValueError):
@@ -58,6 +62,7 @@ class Problems:
         self.skipped_by_reason: Counter = Counter()
         self.backwards: Counter = Counter()
         self.problems: list[str] = []
+        self.notes: dict[str, Any] = {}  # e.g. "timestamps", "odometry" (docs/readers.md)
 
     @property
     def skipped(self) -> int:
@@ -74,6 +79,7 @@ class Problems:
             "skipped_by_reason": dict(self.skipped_by_reason),
             "timestamps_backwards": dict(self.backwards),
             "problems": list(self.problems),
+            **self.notes,
         }
 
 
@@ -180,12 +186,14 @@ def derived_config(
         k_r=VIRTUAL_K,
         k_l=VIRTUAL_K,
         k_d=VIRTUAL_K_D,
+        hole_tolerance=OdometryLimits().hole,
     )
     return dataclasses.replace(
         cfg,
         robot=dataclasses.replace(cfg.robot, name=name),
         laser=laser,
         odometry=odo,
+        frontend=dataclasses.replace(cfg.frontend, residual_level=RESIDUAL_LEVEL),
         source="<derived from the log>",
     )
 
@@ -231,8 +239,10 @@ class VirtualDrive:
         self.cum_r = self.cum_l = 0.0
         self.tick_r = self.tick_l = 0
         self.t: float | None = None
+        self.travel = 0.0  # m of wheel travel driven (distance plus turning), for warnings
 
     def _tick(self, t: float, lr: float, ll: float) -> OdometryEvent:
+        self.travel += abs(lr + ll) / 2 + abs(lr - ll) / 2
         self.cum_r += lr
         self.cum_l += ll
         tr, tl = round(self.cum_r / self.mr), round(self.cum_l / self.ml)
@@ -240,16 +250,32 @@ class VirtualDrive:
         self.tick_r, self.tick_l = tr, tl
         return ev
 
-    def ticks(self, t: float, inc: tuple[float, float, float]) -> list[OdometryEvent]:
-        """The odometry samples of one increment ending at time ``t``."""
+    def ticks(
+        self,
+        t: float,
+        inc: tuple[float, float, float],
+        after: float = -math.inf,
+        hole: float = math.inf,
+    ) -> list[OdometryEvent]:
+        """The odometry samples of one increment ending at time ``t``, stamped no earlier
+        than ``after`` (the last event delivered); after a gap longer than ``hole`` s they
+        are all stamped ``t`` (the motion's time is unknown: the gap stays visible). An
+        increment that would take more than :data:`MAX_SAMPLES` samples is a
+        :class:`ReaderError` (readers bound motion before they get here)."""
         dx, dy, dth = (float(v) for v in inc)
         dist = math.hypot(dx, dy)
+        if not (dist <= MAX_SAMPLES * VIRTUAL_STEP and abs(dth) <= MAX_SAMPLES * VIRTUAL_TURN):
+            raise ReaderError(f"odometry increment of {dist:.3g} m, {dth:.3g} rad: too large")
         n = max(1, math.ceil(dist / VIRTUAL_STEP - 1e-9), math.ceil(abs(dth) / VIRTUAL_TURN - 1e-9))
         h = dth / n
         # n chords of length c turning by h each span 2 c sin(n h/2) / (2 sin(h/2))
         ratio = math.sin(h / 2) / math.sin(dth / 2) if abs(dth) > 1e-12 else 1.0 / n
         c = math.copysign(dist * ratio, dx) if dx < 0 else dist * ratio
-        t0 = self.t if self.t is not None and self.t < t else t
+        gap = t - self.t if self.t is not None else 0.0
+        t = max(t, after)
+        t0 = max(self.t, after) if self.t is not None and self.t < t else t
+        if gap > hole:
+            t0 = t
         self.t = t
         return [
             self._tick(
@@ -259,6 +285,25 @@ class VirtualDrive:
             )
             for i in range(n)
         ]
+
+
+MIN_SCANS = 10  # fewer scans than this: "almost nothing to process"
+
+
+def input_warnings(scans: int, travel: float, odometry: dict[str, Any] | None = None) -> list[str]:
+    """One-line warnings about an input that gives almost nothing to process, no motion, or
+    mostly holes (for the console and ``report.json``)."""
+    out = []
+    if scans < MIN_SCANS:
+        out.append(f"only {scans} laser scans: almost nothing to process")
+    if scans >= 2 and travel < 1e-3:
+        out.append("the odometry never moves: the robot stood still, or the log has no odometry")
+    if odometry and odometry.get("holes"):
+        out.append(
+            f"{odometry['holes']} odometry holes ({odometry.get('hole_seconds', 0):g} s without "
+            "odometry while scans came): their motion is uncertain"
+        )
+    return out
 
 
 class Source:

@@ -14,11 +14,15 @@
   its echoes nor measures their bearing: this mapping treats every echo as a plane seen at
   normal incidence, which is often wrong; use ``--sensors laser`` unless that holds.
 
-Times are the messages' header stamps. Topic names are chosen by option; left out, the only
-topic of the right type is taken. A bag without such a topic is a :class:`ReaderError`
-listing the topics it has. Header stamps that go backwards are counted: a scan or range
-reading is then skipped, an odometry message's motion is carried into the next one; nothing
-is reordered.
+Times are the messages' header stamps, or the bag's record times when the first scan's header
+stamp is unset (0) or not a time (``timestamps``: ``auto``, ``header``, ``bag``; recorded in
+``meta["timestamps"]``). Odometry messages moving faster than the reader's
+:class:`~fgslam.readers.sanity.OdometryLimits` are an error (strict) or skipped and counted
+(tolerant); gaps in the odometry while scans come are counted as holes. Topic names are
+chosen by option; left out, the only topic of the right type is taken. A bag without such a
+topic is a :class:`ReaderError` listing the topics it has. Header stamps that go backwards
+are counted: a scan or range reading is then skipped, an odometry message's motion is carried
+into the next one; nothing is reordered.
 """
 
 from __future__ import annotations
@@ -40,9 +44,12 @@ from fgslam.readers.common import (
     VirtualDrive,
     compose,
     derived_config,
+    input_warnings,
     relative,
 )
+from fgslam.readers.sanity import MAX_STAMP, OdometryLimits, implausible
 
+ROS_CLOCKS = ("auto", "header", "bag")
 SCAN = "sensor_msgs/msg/LaserScan"
 ODOM = "nav_msgs/msg/Odometry"
 RANGE = "sensor_msgs/msg/Range"
@@ -94,8 +101,15 @@ class RosBag(Source):
         laser_mount: tuple[float, float, float] = (0.0, 0.0, 0.0),
         range_mounts: Sequence[tuple[float, float, float]] = (),
         tolerant: bool = False,
+        timestamps: str = "auto",
+        limits: OdometryLimits | None = None,
     ) -> None:
         super().__init__(path)
+        if timestamps not in ROS_CLOCKS:
+            raise ReaderError(
+                f"unknown --timestamps {timestamps!r} for a bag; expected {ROS_CLOCKS}"
+            )
+        self.limits = limits or OdometryLimits()
         AnyReader, AnyReaderError, Stores, get_typestore = _import()
         self._AnyReader, self._AnyReaderError = AnyReader, AnyReaderError
         self._typestore = get_typestore(Stores.ROS2_HUMBLE)
@@ -114,6 +128,13 @@ class RosBag(Source):
                 break
         if first is None:
             raise ReaderError(f"{self.name}: topic {self.scan_topic} has no messages")
+        # the header stamp unless it is unset (0) or not a time: then the bag's record time
+        t0 = _stamp(first)
+        header_sound = math.isfinite(t0) and 1e-9 < t0 < MAX_STAMP
+        self.clock = timestamps if timestamps != "auto" else ("header" if header_sound else "bag")
+        clock_record = {"requested": timestamps, "used": self.clock, "defects": {}}
+        if not header_sound:
+            clock_record["defects"]["header"] = [f"first scan's header stamp is {t0:.6g}"]
         n = len(first.ranges)
         fov = round(math.degrees(first.angle_max - first.angle_min), 4)  # float32 angles
         if n < 2 or not 0 < fov <= 360:
@@ -149,7 +170,11 @@ class RosBag(Source):
             "odom_topic": self.odom_topic,
             "range_topics": list(self.range_topics),
             "laser": f"{n} beams over {fov:g} deg",
+            "timestamps": clock_record,
         }
+        self.problems.notes["timestamps"] = clock_record
+        self._odo_notes = {"holes": 0, "implausible": 0}
+        self.problems.notes["odometry"] = self._odo_notes
 
     def _open(self):
         try:
@@ -184,15 +209,25 @@ class RosBag(Source):
         pr = self.problems
         last = -math.inf
         last_odom_pose: tuple[float, float, float] | None = None
+        last_odom_t = last_delivered_odo = -math.inf
+        in_hole = False
+        n_scans = 0
         carried = np.zeros(3)
         array_of = {t: i for i, t in enumerate(self.range_topics)}
         wanted = {self.scan_topic, self.odom_topic, *self.range_topics}
         with self._open() as reader:
             conns = [c for c in reader.connections if c.topic in wanted]
-            for conn, _, raw in reader.messages(connections=conns):
+            for conn, bag_ns, raw in reader.messages(connections=conns):
                 try:
                     msg = reader.deserialize(raw, conn.msgtype)
-                    t = _stamp(msg)
+                    t = _stamp(msg) if self.clock == "header" else 1e-9 * float(bag_ns)
+                    if not (math.isfinite(t) and abs(t) < MAX_STAMP):
+                        raise ValueError(f"stamp {t:.6g} is not a time")
+                    if conn.topic == self.odom_topic:
+                        p = msg.pose.pose
+                        pose = (float(p.position.x), float(p.position.y), _yaw(p.orientation))
+                        if not all(abs(v) < 1e7 for v in pose):
+                            raise ValueError(f"pose {pose} out of range")
                 except Exception as exc:
                     msg_text = f"{self.name}: {conn.topic}: cannot decode a message ({exc})"
                     if not self.tolerant:
@@ -200,25 +235,39 @@ class RosBag(Source):
                     pr.skip(f"undecodable {conn.topic}", msg_text)
                     continue
                 if conn.topic == self.odom_topic:
-                    p = msg.pose.pose
-                    pose = (float(p.position.x), float(p.position.y), _yaw(p.orientation))
                     if last_odom_pose is None:
-                        last_odom_pose = pose
+                        last_odom_pose, last_odom_t = pose, t
                         last = max(last, t)
                         continue
-                    carried = compose(carried, relative(last_odom_pose, pose))
-                    last_odom_pose = pose
+                    inc = relative(last_odom_pose, pose)
+                    why = implausible(inc, t - last_odom_t, self.limits)
+                    if why is not None:
+                        text = (
+                            f"{self.name}: {conn.topic} at t={t:.6f}: implausible odometry: {why}"
+                        )
+                        if not self.tolerant:
+                            raise ReaderError(text + " (--tolerant skips such messages)")
+                        self._odo_notes["implausible"] += 1
+                        pr.skip("implausible odometry", text)
+                        continue
+                    carried = compose(carried, inc)
+                    last_odom_pose, last_odom_t = pose, t
                     if t < last:
                         pr.backwards[conn.topic] += 1
                         continue
                     last = t
-                    yield from drive.ticks(t, carried)
+                    yield from drive.ticks(t, carried, after=last, hole=self.limits.hole)
                     carried = np.zeros(3)
+                    last_delivered_odo, in_hole = t, False
                     continue
                 if t < last:
                     pr.backwards[conn.topic] += 1
                     continue
                 last = t
+                if conn.topic == self.scan_topic and t - last_delivered_odo > self.limits.hole:
+                    if not in_hole and last_delivered_odo > -math.inf:
+                        self._odo_notes["holes"] += 1
+                        in_hole = True
                 if conn.topic == self.scan_topic:
                     r = np.asarray(msg.ranges, dtype=float)
                     if r.size != self.n_beams:
@@ -227,6 +276,7 @@ class RosBag(Source):
                     r = r.copy()
                     bad = ~np.isfinite(r) | (r < msg.range_min) | (r > msg.range_max) | (r <= 0)
                     r[bad] = np.nan
+                    n_scans += 1
                     yield LaserScan(t, r)
                 else:
                     r = float(msg.range)
@@ -234,3 +284,4 @@ class RosBag(Source):
                     if math.isfinite(r) and msg.min_range <= r <= msg.max_range and r > 0:
                         echoes = (SonarEcho("plane", r, 0.0),)
                     yield SonarReading(t, array_of[conn.topic], 0.0, echoes)
+        self.problems.notes["warnings"] = input_warnings(n_scans, drive.travel, self._odo_notes)

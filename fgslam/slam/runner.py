@@ -21,8 +21,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from factors.odometry import OdometryParams, integrate_poses, preintegrate
+from factors.odometry import integrate_poses, preintegrate
 from fgslam.config import RobotConfig
+from fgslam.config import map_params as config_map_params
 from fgslam.events import Event, OdometryEvent, TruthPose
 from fgslam.frontend.pipeline import FrontEnd
 from fgslam.ordering import REORDER_WINDOW, ReorderBuffer
@@ -66,6 +67,8 @@ class SlamResult:
     stats: Counter = field(default_factory=Counter)
     batch_seconds: float = 0.0
     landmark_counts: list[int] = field(default_factory=list)  # landmarks after each keyframe
+    # every odometry sample (t, L_r, L_l) in m, for the trajectory between keyframes
+    odometry_samples: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 3)))
 
     @property
     def has_truth(self) -> bool:
@@ -162,6 +165,7 @@ class SlamPipeline:
         self.progress = progress
         self.count_idle = count_idle
         self.sessions: dict[str, _Session] = {}
+        map_params = map_params or config_map_params(cfg)  # sensor-derived thresholds
         for b in backends:
             if b == "ekf":
                 self.sessions[b] = _Session("ekf", map_params)
@@ -170,8 +174,10 @@ class SlamPipeline:
         self.reorder = ReorderBuffer(reorder_window)
         self.frontend = FrontEnd(cfg, sensors)
         o = cfg.odometry
-        self._odo_params = OdometryParams(o.wheelbase, o.k_r, o.k_l, o.k_d)
+        self._odo_params = o.params()
         self._samples: deque[tuple[float, float, float]] = deque()
+        self._all_samples: list[tuple[float, float, float]] = []
+        self._last_sample_t: float | None = None  # of the samples already preintegrated
         self.truth_t: list[float] = []
         self.truth: list[tuple[float, float, float]] = []
         self.stats: Counter = Counter()
@@ -211,13 +217,13 @@ class SlamPipeline:
             return 0
         if isinstance(ev, OdometryEvent):
             o = self.cfg.odometry
-            self._samples.append(
-                (
-                    ev.t,
-                    ev.ticks_right * o.metres_per_tick_right,
-                    ev.ticks_left * o.metres_per_tick_left,
-                )
+            sample = (
+                ev.t,
+                ev.ticks_right * o.metres_per_tick_right,
+                ev.ticks_left * o.metres_per_tick_left,
             )
+            self._samples.append(sample)
+            self._all_samples.append(sample)
         t0 = time.perf_counter()
         out = self.frontend.add(ev)
         self._fe_wall += time.perf_counter() - t0
@@ -230,13 +236,20 @@ class SlamPipeline:
     def _keyframe(self, sf) -> None:
         o = self.cfg.odometry
         samples = self._samples
-        lr, ll = [], []
+        ts, lr, ll = [], [], []
         while samples and samples[0][0] <= sf.t:
-            _, r, l = samples.popleft()
+            t, r, l = samples.popleft()
+            ts.append(t)
             lr.append(r)
             ll.append(l)
-        pre = preintegrate(lr, ll, self._odo_params)
         first = not self.kf_times
+        span = None if first else (self.kf_times[-1], sf.t)
+        pre = preintegrate(lr, ll, self._odo_params, ts, span, self._last_sample_t)
+        if ts:
+            self._last_sample_t = ts[-1]
+        if pre.hole_seconds:  # odometry hole: its covariance covers the possible motion
+            self.stats["odometry_hole_intervals"] += 1
+            self.stats["odometry_hole_seconds"] += round(pre.hole_seconds, 3)
         if first:
             self._odo_pose = _truth_at(self.truth_t, self.truth, sf.t)
         elif lr:
@@ -330,8 +343,10 @@ class SlamPipeline:
             if name == "batch":
                 sess.be.run_batch()
             results[name] = _result(sess, name, **common)
+        samples = np.array(self._all_samples, dtype=float).reshape(-1, 3)
         for r in results.values():
             r.stats["frontend_seconds"] = round(self._fe_wall, 3)
+            r.odometry_samples = samples
         self._finished = [results[b] for b in self.backends]
         return self._finished
 

@@ -1,0 +1,209 @@
+"""Sanity of foreign logs' clocks and odometry (docs/readers.md, "Timestamps and odometry").
+
+**Clocks.** :func:`stamp_defects` examines one stamp field (CARMEN: ``timestamp``, the
+``ipc`` clock, or ``logger_timestamp``) over the scans and over the odometry records, in file
+order, and names what makes it unusable:
+
+- ``stamped 0``: more than half of a stream's stamps are 0;
+- ``wrapped at 2^32``: a stamp drops by more than 2^31 s from a predecessor above 2^31 s;
+- ``quantised``: more than :data:`MAX_SHARED_SCANS` of the scans share the stamp of the scan
+  before them (stamps written with too few digits);
+- ``junk``/``backwards``: more than :data:`MAX_BAD_FRACTION` of a stream's stamps are junk
+  (negative or ``0 < |t| < 1e-9``, like 3e-86; or, in a stream that is not mostly 0, a 0)
+  or earlier than the latest sound stamp before them by more than ``tolerance`` s.
+
+Fewer junk or far-backward stamps than that are *sporadic*: counted (``bad_stamps``), and
+the reader treats those records as going backwards (a scan is dropped, an odometry record's
+motion is carried into the next sample). :func:`choose_clock` then takes the ``ipc`` field
+when it is sound, else the ``logger`` field when that is, else refuses with one line naming
+each field's first defect and its line; ``--timestamps index|ipc|logger`` forces a choice
+(``index``: scan k at ``k * INDEX_PERIOD`` s, the odometry records between two scans spread
+evenly between them).
+
+**Odometry.** :func:`implausible` tells whether a pose increment over ``dt`` s exceeds a speed
+or turn-rate bound (with ``MIN_DT`` s of slack, so that stamps too close together are no
+excuse); :class:`OdometryLimits` holds the bounds and the hole tolerance. A *hole* is a gap
+between two odometry records longer than ``hole`` s with scans in it: counted, and its
+samples are stamped at its end, so that the preintegration sees the gap
+(:func:`factors.odometry.preintegrate` adds the hole covariance).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+CLOCKS = ("auto", "ipc", "logger", "index")
+INDEX_PERIOD = 0.2  # s between scans with --timestamps index
+MAX_STAMP = 1e10  # s: a stamp beyond is not a time (CARMEN stamps are UNIX seconds, 2^32 = 4.3e9)
+MAX_SHARED_SCANS = 0.05  # fraction of scans sharing the previous scan's stamp: "quantised"
+MAX_BAD_FRACTION = 0.02  # fraction of junk or far-backward stamps tolerated as sporadic
+BACKWARDS_TOLERANCE = 2.0  # s
+WRAP = 2.0**32
+MIN_DT = 0.25  # s of slack in the plausibility test
+
+
+@dataclass(frozen=True)
+class OdometryLimits:
+    """Plausible odometry: at most ``max_speed`` m/s and ``max_turn_rate`` rad/s between two
+    records (with :data:`MIN_DT` s of slack); a gap longer than ``hole`` s with scans in it is
+    an odometry hole."""
+
+    max_speed: float = 3.0
+    max_turn_rate: float = 6.0
+    hole: float = 1.0
+
+
+def implausible(inc: Any, dt: float, limits: OdometryLimits) -> str | None:
+    """Why the increment (dx, dy, dtheta) over ``dt`` s is implausible, or None."""
+    dist = math.hypot(float(inc[0]), float(inc[1]))
+    turn = abs(float(inc[2]))
+    span = max(dt, 0.0) + MIN_DT if math.isfinite(dt) else MIN_DT
+    if not (dist <= limits.max_speed * span):
+        return f"{dist:.3g} m in {max(dt, 0.0):.3g} s (more than {limits.max_speed:g} m/s)"
+    if not (turn <= limits.max_turn_rate * span):
+        return (
+            f"{math.degrees(turn):.3g} deg in {max(dt, 0.0):.3g} s "
+            f"(more than {limits.max_turn_rate:g} rad/s)"
+        )
+    return None
+
+
+@dataclass
+class StampReport:
+    """What :func:`stamp_defects` found in one field: defects (one line each, with the first
+    bad line) and the line numbers of sporadic bad stamps."""
+
+    defects: list[str] = field(default_factory=list)
+    sporadic: dict[str, set[int]] = field(default_factory=dict)
+
+    @property
+    def sound(self) -> bool:
+        return not self.defects
+
+
+def _stream(
+    name: str, lines: np.ndarray, t: np.ndarray, tolerance: float, rep: StampReport
+) -> None:
+    if not len(t):
+        return
+    zero = t == 0
+    mostly_zero = zero.mean() > 0.5
+    if mostly_zero:
+        rep.defects.append(
+            f"{name} stamped 0 ({int(zero.sum())} of {len(t)}, first at line {lines[zero][0]})"
+        )
+        return
+    junk = (t < 0) | (np.abs(t) < 1e-9) | ~np.isfinite(t)
+    bad = junk.copy()
+    latest = -math.inf
+    wrapped = None
+    for i in range(len(t)):
+        if junk[i]:
+            continue
+        if latest > WRAP / 2 and latest - t[i] > WRAP / 2 and wrapped is None:
+            wrapped = i
+        if t[i] < latest - tolerance:
+            bad[i] = True
+        else:
+            latest = max(latest, t[i])
+    if wrapped is not None:
+        rep.defects.append(f"{name} stamps wrapped at 2^32 (line {lines[wrapped]})")
+        return
+    if bad.sum() > MAX_BAD_FRACTION * len(t):
+        i = int(np.argmax(bad))
+        what = "junk" if junk[i] else f"backwards by more than {tolerance:g} s"
+        rep.defects.append(
+            f"{name} stamps {what} ({int(bad.sum())} of {len(t)} bad, first at line "
+            f"{lines[i]}: {t[i]:.6g})"
+        )
+        return
+    if bad.any():
+        rep.sporadic[name] = set(lines[bad].tolist())
+
+
+def stamp_defects(
+    scan_lines: Any,
+    scan_t: Any,
+    odo_lines: Any,
+    odo_t: Any,
+    tolerance: float = BACKWARDS_TOLERANCE,
+) -> StampReport:
+    """The defects of one stamp field over the scans and the odometry records (file order)."""
+    rep = StampReport()
+    sl, st = np.asarray(scan_lines, dtype=int), np.asarray(scan_t, dtype=float)
+    ol, ot = np.asarray(odo_lines, dtype=int), np.asarray(odo_t, dtype=float)
+    _stream("scan", sl, st, tolerance, rep)
+    _stream("odometry", ol, ot, tolerance, rep)
+    if len(st) > 1 and not (st == 0).mean() > 0.5:
+        same = np.diff(st) == 0
+        if same.mean() > MAX_SHARED_SCANS:
+            i = int(np.argmax(same)) + 1
+            rep.defects.append(
+                f"scan stamps quantised ({int(same.sum()) + 1} of {len(st)} scans share a "
+                f"stamp, {len(np.unique(st))} distinct values; first at line {sl[i]}: "
+                f"{st[i]:.6g})"
+            )
+    return rep
+
+
+def choose_clock(
+    name: str, reports: dict[str, StampReport], requested: str = "auto"
+) -> tuple[str, dict[str, Any]]:
+    """The clock to use (``ipc``, ``logger`` or ``index``) and the record of the choice (for
+    the reader's metadata). ``reports`` maps ``ipc`` and ``logger`` to their defects. Raises
+    :class:`~fgslam.readers.common.ReaderError` when ``requested`` is ``auto`` and no field is
+    sound."""
+    from fgslam.readers.common import ReaderError
+
+    if requested not in CLOCKS:
+        raise ReaderError(f"unknown --timestamps {requested!r}; expected one of {CLOCKS}")
+    record: dict[str, Any] = {
+        "requested": requested,
+        "defects": {k: list(r.defects) for k, r in reports.items() if r.defects},
+    }
+    if requested == "auto":
+        for clock in ("ipc", "logger"):
+            if clock in reports and reports[clock].sound:
+                chosen = clock
+                break
+        else:
+            what = "; ".join(f"{k} field: {r.defects[0]}" for k, r in reports.items())
+            raise ReaderError(
+                f"{name}: no usable timestamps ({what}); choose with --timestamps index|ipc|logger"
+            )
+    else:
+        chosen = requested
+    record["used"] = chosen
+    if chosen == "index":
+        record["index_period_s"] = INDEX_PERIOD
+    elif chosen in reports:
+        record["sporadic_bad_stamps"] = {k: len(v) for k, v in reports[chosen].sporadic.items()}
+    return chosen, record
+
+
+def index_stamps(kinds: list[str]) -> list[float]:
+    """Stamps by record order (``kinds``: ``"scan"`` or ``"odometry"`` per timed record):
+    scan k (from 1) at ``k * INDEX_PERIOD``, the odometry records before it spread evenly
+    over the period before it (and after the last scan, over the period after it)."""
+    out = [0.0] * len(kinds)
+    scan_k = 0
+    pending: list[int] = []
+
+    def spread(start: float) -> None:
+        for j, i in enumerate(pending):
+            out[i] = start + INDEX_PERIOD * (j + 1) / (len(pending) + 1)
+        pending.clear()
+
+    for i, kind in enumerate(kinds):
+        if kind == "scan":
+            spread(scan_k * INDEX_PERIOD)
+            scan_k += 1
+            out[i] = scan_k * INDEX_PERIOD
+        else:
+            pending.append(i)
+    spread(scan_k * INDEX_PERIOD)
+    return out
