@@ -173,13 +173,15 @@ def write_dense_trajectory(
     :func:`fgslam.evaluation.write_tum`) from keyframe poses and odometry samples ``(t, L_r,
     L_l)``; returns the number of poses written."""
     from fgslam.evaluation import write_tum
+    from fgslam.safeio import atomic_path
 
     ot, op = odometry_path(samples, wheelbase)
     t = dense_times(kf_t, ot)
-    if not len(t):
-        write_tum(path, np.zeros(0), np.zeros((0, 3)))
-        return 0
-    write_tum(path, t, dense_poses(kf_t, kf_poses, ot, op, t))
+    with atomic_path(path) as tmp:  # complete or not there at all
+        if not len(t):
+            write_tum(tmp, np.zeros(0), np.zeros((0, 3)))
+            return 0
+        write_tum(tmp, t, dense_poses(kf_t, kf_poses, ot, op, t))
     return len(t)
 
 
