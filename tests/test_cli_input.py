@@ -112,6 +112,7 @@ def test_run_outputs_are_written_atomically(tiny_log, tmp_path, capsys):
         "map.png",
         "report.json",
         "trajectory.tum",
+        "trajectory_dense.tum",
     ]
 
 
