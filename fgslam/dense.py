@@ -129,16 +129,7 @@ def relations_error(
         tt = np.asarray(t_traj, dtype=float)
     if len(tt) == 0:
         raise ValueError("empty trajectory: no relation can be evaluated")
-    lo, hi = float(tt.min()), float(tt.max())
-    inside = (np.minimum(r[:, 0], r[:, 1]) >= lo - 1e-9) & (
-        np.maximum(r[:, 0], r[:, 1]) <= hi + 1e-9
-    )
-    used = r[inside]
-    if not len(used):
-        raise ValueError(
-            f"none of the {len(r)} relations lies within the estimate's time span "
-            f"[{lo:.6f}, {hi:.6f}] s: nothing to compare"
-        )
+    used = _within(r, float(tt.min()), float(tt.max()))
     if kf_t is not None:
         ot = np.zeros(0) if odo_t is None else odo_t
         op = np.zeros((0, 3)) if odo_path is None else odo_path
@@ -183,6 +174,19 @@ def write_dense_trajectory(
             return 0
         write_tum(tmp, t, dense_poses(kf_t, kf_poses, ot, op, t))
     return len(t)
+
+
+def _within(r: NDArray, lo: float, hi: float) -> NDArray:
+    """The relations (rows t1 t2 ...) whose both ends lie in [lo, hi] s; ValueError if none."""
+    inside = (np.minimum(r[:, 0], r[:, 1]) >= lo - 1e-9) & (
+        np.maximum(r[:, 0], r[:, 1]) <= hi + 1e-9
+    )
+    if not inside.any():
+        raise ValueError(
+            f"none of the {len(r)} relations lies within the estimate's time span "
+            f"[{lo:.6f}, {hi:.6f}] s: nothing to compare"
+        )
+    return r[inside]
 
 
 def _metrics(d: NDArray, used: NDArray, n: int) -> dict:
@@ -293,16 +297,7 @@ def relations_error_chain(
     if not has.any():
         raise ValueError("no scan has an estimated pose: nothing to compare")
     st = chain.scan_t[has]
-    lo, hi = float(st.min()), float(st.max())
-    inside = (np.minimum(r[:, 0], r[:, 1]) >= lo - 1e-9) & (
-        np.maximum(r[:, 0], r[:, 1]) <= hi + 1e-9
-    )
-    used = r[inside]
-    if not len(used):
-        raise ValueError(
-            f"none of the {len(r)} relations lies within the estimate's time span "
-            f"[{lo:.6f}, {hi:.6f}] s: nothing to compare"
-        )
+    used = _within(r, float(st.min()), float(st.max()))
     est = np.asarray(estimate, dtype=float)
     x1 = chain_poses(chain, est, has, used[:, 0])
     x2 = chain_poses(chain, est, has, used[:, 1])
