@@ -412,8 +412,9 @@ class SickEmulator(PtyEmulator):
     ACK + a 92 reply.
 
     :meth:`offer_scan` hands it a scan whose first byte is due at log time ``t``: when
-    streaming, it is written so that its last byte leaves at ``t`` + its transmission time
-    at the current rate. The simulator's scan times already follow the configured line rate
+    streaming, it is written so that its last byte leaves at ``t`` (or, when the line is
+    still busy with the previous scan, the moment it is free) + its transmission time at
+    the current rate. The simulator's scan times already follow the configured line rate
     (with a jittering delay), so a scan is skipped only when the line would still be busy
     with the previous one for more than half a frame: at a lower rate than the configured
     one (at 9600 baud about one scan in four fits). A single-scan request (30 01) is
@@ -471,8 +472,11 @@ class SickEmulator(PtyEmulator):
             elif t < self._line_free - tx / 2:
                 self.scans_skipped += 1
                 return
-            self._line_free = max(self._line_free, t + tx)
-            self.send(telegram, t + tx, frame=True)
+            # a line sends one byte after the other: a scan due while the previous one is
+            # still going out starts when the line is free
+            start = max(t, self._line_free)
+            self._line_free = start + tx
+            self.send(telegram, start + tx, frame=True)
 
     def _reply(self, payload: bytes) -> None:
         self.send(bytes([sick.ACK]) + sick.build_telegram(sick.DEVICE_ADDRESS, payload))
