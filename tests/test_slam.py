@@ -122,8 +122,9 @@ def test_bad_logs_never_crash():
     evs = list(evs)
     # a gap of 3 s, a few records out of order, a burst of empty and garbage scans
     bad = [e for e in evs if not (8.0 < e.t < 11.0)]
-    bad.insert(400, bad[100])
-    bad.insert(900, bad[300])
+    late = [bad[100], bad[300]]  # each repeated far beyond the reorder window
+    bad.insert(next(i for i, e in enumerate(bad) if e.t > late[0].t + 3.0), late[0])
+    bad.insert(next(i for i, e in enumerate(bad) if e.t > late[1].t + 3.0), late[1])
     for k in range(len(bad)):
         if isinstance(bad[k], LaserScan) and 13.0 < bad[k].t < 15.0:
             r = np.full(361, np.nan) if k % 2 else np.random.default_rng(k).uniform(0, 90, 361)
