@@ -48,6 +48,7 @@ from fgslam.slam.runner import SlamPipeline, SlamResult
 STATUS_INTERVAL = 0.25  # wall s between status updates
 SILENT_AFTER = 1.0  # s of a driver's attentive waiting without data: the merge goes on without it
 HOST_GONE = 0.5  # wall s after every host closed its port: fgslam emulate stops
+CHECKPOINT_EVERY = 5.0  # s of log time between the checkpoints of fgslam online's outputs
 
 
 @dataclass
@@ -92,6 +93,8 @@ def run_online(
     status_interval: float = STATUS_INTERVAL,
     reorder_window: float = REORDER_WINDOW,
     silent_after: float = SILENT_AFTER,
+    checkpoint: Callable[[SlamResult], None] | None = None,
+    checkpoint_every: float = CHECKPOINT_EVERY,
 ) -> OnlineResult:
     """Run the front end and ``backend`` on the events of started ``ports`` as they come.
 
@@ -104,7 +107,9 @@ def run_online(
     Stops when ``stop`` is set, or at the end of the data: every device silent for
     ``idle_timeout`` s (attentive) after data has been flowing, and nothing left to take.
     ``on_status`` receives a one-line status (:func:`status_line`) at most every
-    ``status_interval`` wall s. A device that disconnects is reopened by its driver thread
+    ``status_interval`` wall s. ``checkpoint`` receives the estimate so far
+    (:meth:`SlamPipeline.snapshot`) whenever ``checkpoint_every`` s of log time have been
+    processed since the last one. A device that disconnects is reopened by its driver thread
     while the others go on. Raises RuntimeError if a device thread failed (a bug)."""
     stop = stop or threading.Event()
     pipe = SlamPipeline(cfg, [backend], sensors, reorder_window=reorder_window, count_idle=False)
@@ -116,6 +121,7 @@ def run_online(
     t_wall = time.monotonic()
     flowing = False
     next_status = t_wall
+    next_checkpoint = -math.inf
     reason = "interrupted"
 
     def take(evs: list[Event], streaming: bool = True) -> None:
@@ -146,6 +152,10 @@ def run_online(
         errors = ports.errors()
         if errors:
             raise RuntimeError(f"a device thread failed: {errors[0]!r}") from errors[0]
+        if checkpoint is not None and pipe.keyframes and pipe.last_t >= next_checkpoint:
+            if next_checkpoint > -math.inf:  # the first keyframe only starts the clock
+                checkpoint(pipe.snapshot())
+            next_checkpoint = pipe.last_t + checkpoint_every
         now = time.monotonic()
         if on_status is not None and now >= next_status:
             next_status = now + status_interval
@@ -490,7 +500,9 @@ def online_main(
 ) -> tuple[OnlineResult, dict[str, Any]]:
     """``fgslam online``: open the ports, run SLAM as data arrives until ``stop`` or the end
     of the data, write the outputs of ``fgslam run`` into ``out``; returns the run and its
-    report."""
+    report. Meanwhile, every :data:`CHECKPOINT_EVERY` s of log time, the estimate so far is
+    written there (trajectory.tum, map.json, report.json with ``checkpoint``; atomically),
+    so that a run that is killed keeps its outputs up to the last checkpoint."""
     from fgslam.slam.outputs import write_outputs
 
     if idle_timeout <= 0:
@@ -525,6 +537,14 @@ def online_main(
                     if not status.get(n, {}).get("connected")
                 ]
                 raise UserError(f"no answer after {connect_timeout:g} s from {'; '.join(bad)}")
+        checkpoints = 0
+
+        def save(res: SlamResult) -> None:  # atomic files: a killed run keeps the last one
+            nonlocal checkpoints
+            checkpoints += 1
+            note = {"complete": False, "number": checkpoints, "log_time": res.times[-1]}
+            write_outputs(res, out, extra={"checkpoint": note}, figure=False)
+
         try:
             run = run_online(
                 ports,
@@ -534,6 +554,7 @@ def online_main(
                 stop=stop,
                 idle_timeout=idle_timeout,
                 on_status=display,
+                checkpoint=save,
             )
         finally:
             display.close()

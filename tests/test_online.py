@@ -9,6 +9,7 @@ the assertions are on content, not on timing (issue 17)."""
 from __future__ import annotations
 
 import io
+import json
 import os
 import signal
 import subprocess
@@ -405,6 +406,54 @@ def test_emulate_and_online_commands_with_ctrl_c(tmp_path):
         assert emu.returncode == 0, e_err
         assert "run started" in e_out and "stopped:" in e_out
         assert not (links / "laser").exists()
+    finally:
+        for p in (online, emu):
+            if p is not None and p.poll() is None:
+                p.kill()
+                p.communicate()
+
+
+def test_killed_online_run_keeps_its_last_checkpoint(tmp_path):
+    """``fgslam online`` killed with SIGKILL (nothing can run at exit): its outputs of the
+    last checkpoint are there, whole (written atomically), and say they are a checkpoint;
+    the emulator then sees its host gone and stops by itself."""
+    links, out = tmp_path / "links", tmp_path / "out"
+    emulate = ["emulate", "--duration", "600", "--seed", "5", "--speed", "3"]
+    emu = subprocess.Popen(
+        [*FGSLAM, *emulate, "--link-dir", str(links)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    online = None
+    try:
+        assert wait_until(lambda: (links / "odometry").exists(), timeout=60)
+        ports = ["--laser", str(links / "laser"), "--odom", str(links / "odometry")]
+        ports += ["--sonar", str(links / "sonar0"), "--sonar", str(links / "sonar1")]
+        online = subprocess.Popen(
+            [*FGSLAM, "online", *ports, "--speed", "3", "--out", str(out)],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+
+        def checkpoints() -> int:
+            try:
+                rep = json.loads((out / "report.json").read_text())
+            except (OSError, ValueError):
+                return 0
+            return rep.get("checkpoint", {}).get("number", 0)
+
+        assert wait_until(lambda: checkpoints() >= 2, timeout=120), online.poll()
+        online.kill()  # SIGKILL
+        online.wait(30)
+        rep = json.loads((out / "report.json").read_text())
+        assert rep["checkpoint"]["complete"] is False and rep["poses"] > 10
+        traj = (out / "trajectory.tum").read_text().splitlines()
+        assert len(traj) == rep["poses"]
+        assert json.loads((out / "map.json").read_text())["landmarks"]
+        assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no temporary left
+        e_out, e_err = emu.communicate(timeout=120)  # the host is gone: it stops
+        assert emu.returncode == 0 and "every host closed its port" in e_out, e_err
     finally:
         for p in (online, emu):
             if p is not None and p.poll() is None:

@@ -339,12 +339,14 @@ def write_outputs(
     world: Any = None,
     scans: list[tuple[float, np.ndarray]] | None = None,
     cfg: RobotConfig | None = None,
+    figure: bool = True,
 ) -> dict[str, Any]:
     """Write the four files into directory ``out`` (each atomically); returns the report.
 
     ``extra``: more keys for report.json (what the reader found, ...); ``world``: the
     simulator's world, drawn as an outline; ``scans`` (time, ranges) with ``cfg``: laser scans
-    drawn in map.png placed with the estimated trajectory (see :class:`ScanSample`)."""
+    drawn in map.png placed with the estimated trajectory (see :class:`ScanSample`);
+    ``figure`` False leaves map.png out (a checkpoint of an online run)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     with safeio.atomic_path(out / "trajectory.tum") as tmp:
@@ -354,6 +356,8 @@ def write_outputs(
     if extra:
         rep.update(extra)
     safeio.write_json(out / "report.json", rep)
+    if not figure:
+        return rep
     points = None
     if scans and cfg is not None and len(res.times):
         points = laser_points(scans, res.times, res.poses, cfg)

@@ -304,6 +304,28 @@ class SlamPipeline:
 
     # -- the end
 
+    def snapshot(self) -> SlamResult:
+        """The first backend's estimate so far, finishing nothing (no event is flushed, no
+        backend finished): a checkpoint of a long online run. Trajectory: each keyframe's
+        pose as estimated at its time; landmarks: their current means."""
+        if self._finished is not None:
+            return self._finished[0]
+        name = self.backends[0]
+        sess = self.sessions["ekf" if name == "ekf" else "graph"]
+        return _result(
+            sess,
+            name,
+            kf_odo=self._kf_odo,
+            truth_t=self.truth_t,
+            truth=self.truth,
+            stats=self.stats,
+            shared=0.0,
+            first_t=self.first_t,
+            last_t=self.last_t,
+            sensors=self.sensors,
+            final=False,
+        )
+
     def finish(self) -> list[SlamResult]:
         """Process everything still waiting (held events, scans waiting for their sonar
         window) and return the results, in the order of ``backends``. Idempotent."""
@@ -373,17 +395,19 @@ def run_backends(
 
 
 def _result(
-    sess, name, *, kf_odo, truth_t, truth, stats, shared, first_t, last_t, sensors
+    sess, name, *, kf_odo, truth_t, truth, stats, shared, first_t, last_t, sensors, final=True
 ) -> SlamResult:
     """Finish one session's backend and package its result; ``shared`` (s) is the reading
-    and front-end time that every backend of the pass is charged with."""
+    and front-end time that every backend of the pass is charged with. Not ``final``: the
+    estimate so far, finishing nothing (the trajectory as estimated at each keyframe, no
+    landmark covariances)."""
     t0 = time.perf_counter()
-    traj = sess.be.finish()
+    traj = sess.be.finish() if final else list(sess.be.trajectory)
     means = {
         lid: models.normalize(sess.mapper.landmarks[lid].kind, m)
         for lid, m in sess.be.means().items()
     }
-    covs = sess.be.landmark_covariances()
+    covs = sess.be.landmark_covariances() if final else {}
     finish = time.perf_counter() - t0
     st = Counter(stats)
     st.update(sess.stats)
