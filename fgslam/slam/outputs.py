@@ -21,7 +21,6 @@ from matplotlib.patches import Ellipse
 
 from factors.geometry import wrap_angle
 from fgslam import evaluation
-from fgslam.slam.mapping import line_endpoints
 from fgslam.slam.runner import SlamResult
 
 
@@ -35,8 +34,8 @@ def map_dict(res: SlamResult) -> dict[str, Any]:
         d: dict[str, Any] = {"id": lid, "kind": lm.kind}
         if lm.kind == "line":
             d["alpha"], d["d"] = float(m[0]), float(m[1])
-            if lm.extent is not None:
-                d["endpoints"] = line_endpoints(m, lm.extent).round(4).tolist()
+            if lm.ends is not None:  # world points: no (alpha, d) flip can mirror them
+                d["endpoints"] = np.asarray(lm.ends).round(4).tolist()
         elif lm.kind == "corner":
             d["x"], d["y"], d["theta"] = (float(v) for v in m)
             d["convex"] = lm.convex
@@ -48,6 +47,7 @@ def map_dict(res: SlamResult) -> dict[str, Any]:
         d["covariance"] = None if cov is None else np.asarray(cov).tolist()
         d["observations"] = dict(lm.observations)
         d["sonar_readings"] = lm.sonar_readings
+        d["status"] = lm.status  # "confirmed", or "unreliable": in view, not seen for long
         out.append(d)
     return {"frame": "world (m, rad)", "landmarks": out}
 
@@ -146,8 +146,8 @@ def plot_map(res: SlamResult, path: str | Path, title: str = "") -> None:
             continue
         m = res.means[lid]
         cov = res.landmark_covs.get(lid)
-        if lm.kind == "line" and lm.extent is not None:
-            e = line_endpoints(m, lm.extent)
+        if lm.kind == "line" and lm.ends is not None:
+            e = np.asarray(lm.ends)
             ax.plot(e[:, 0], e[:, 1], "-", color="tab:blue", lw=1.5)
         elif lm.kind in ("corner", "point"):
             ax.plot(

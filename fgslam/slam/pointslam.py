@@ -7,8 +7,9 @@ steps turn by milliradians, so the frame it is given in hardly matters), then ea
 as a point :class:`~fgslam.frontend.features.Feature` with z = (bearing, range) and the
 covariance carried through the Jacobian of the polar conversion, then :meth:`commit`.
 Association is either the file's (``"given"``: the landmark index) or the project's own
-(``"own"``: :class:`~fgslam.slam.mapping.MapManager`'s chi-square gate with the backend's
-joint covariance, exactly as in a laser run). The keyframe "time" is the pose index.
+(``"own"``: the association and landmark lifecycle of a laser run, with the backend's
+joint covariance). Both go through :class:`~fgslam.slam.step.SlamStep`, the SLAM step of
+every run. The keyframe "time" is the pose index.
 """
 
 from __future__ import annotations
@@ -27,7 +28,8 @@ from fgslam.readers.victoria import VictoriaPark, to_bearing_range
 from fgslam.slam.backend import Backend
 from fgslam.slam.ekf import EkfBackend
 from fgslam.slam.graph import GraphBackend
-from fgslam.slam.mapping import MapManager, MapParams
+from fgslam.slam.mapping import MapParams
+from fgslam.slam.step import SlamStep
 
 BACKENDS = ("ekf", "isam2", "batch")
 ASSOCIATIONS = ("given", "own")
@@ -79,58 +81,29 @@ def run_points(
     if association not in ASSOCIATIONS:
         raise ValueError(f"unknown association {association!r}; expected one of {ASSOCIATIONS}")
     be: Backend = EkfBackend() if backend == "ekf" else GraphBackend(covariances=False)
-    mapper = MapManager(map_params or POINT_MAP_PARAMS) if association == "own" else None
-    stats: Counter = Counter()
+    step = SlamStep(be, map_params or POINT_MAP_PARAMS)
     steps = data.steps[:limit] if limit is not None else data.steps
     index = [steps[0].i]
     odo = [np.zeros(3)]
-    filtered = []
-    latencies = []
     assigned: list[tuple[int, int]] = []
-    known: set[int] = set()
     t_start = time.perf_counter()
 
-    def keyframe(k: int, pose_index: int) -> None:
+    def keyframe(k: int, pose_index: int, pre: Preintegrated | None) -> None:
         sights = data.sightings.get(pose_index, [])
         feats = []
         for s in sights:
             z, c = to_bearing_range(s.xy, s.cov)
             feats.append(Feature("point", z, c, source="laser", laser_support=1))
-        if mapper is None:
-            for s, f in zip(sights, feats, strict=True):
-                if s.landmark in known:
-                    be.observe(s.landmark, f)
-                    stats["points_associated"] += 1
-                else:
-                    be.add_landmark(s.landmark, f)
-                    known.add(s.landmark)
-                    stats["points_new"] += 1
-        else:
-            dec = mapper.associate(float(k), feats, be.pose(), be.means(), be.estimate)
-            for keep, drop in dec.merge:
-                be.merge(keep, drop)
-            where = {id(f): lid for lid, f in dec.observe + dec.new}
-            for lid, f in dec.observe:
-                be.observe(mapper.resolve(lid), f)
-            for lid, f in dec.new:
-                be.add_landmark(lid, f)
-            for s, f in zip(sights, feats, strict=True):
-                assigned.append((s.landmark, where.get(id(f), -1)))
-            stats.update(dec.stats)
-        be.commit()
-        if mapper is not None:
-            mapper.update_geometry(dec, be.pose(), be.means())
-        filtered.append(be.pose())
+        given = [s.landmark for s in sights] if association == "given" else None
+        where = step.keyframe(float(k), feats, pre, np.zeros(3), given)
+        if given is None:
+            for s, lid in zip(sights, where, strict=True):
+                ok = lid is not None and step.landmarks[step.map.resolve(lid)].active
+                assigned.append((s.landmark, step.map.resolve(lid) if ok else -1))
 
-    t0 = time.perf_counter()
-    be.start(0.0, np.zeros(3), np.eye(3) * 1e-8)
-    keyframe(0, steps[0].i)
-    latencies.append(time.perf_counter() - t0)
+    keyframe(0, steps[0].i, None)
     for k, st in enumerate(steps, 1):
-        t0 = time.perf_counter()
-        be.predict(float(k), _pre(st.delta, st.cov * odometry_scale))
-        keyframe(k, st.j)
-        latencies.append(time.perf_counter() - t0)
+        keyframe(k, st.j, _pre(st.delta, st.cov * odometry_scale))
         index.append(st.j)
         p = odo[-1]
         c, s = np.cos(p[2]), np.sin(p[2])
@@ -144,6 +117,7 @@ def run_points(
                 ]
             )
         )
+    stats = step.stats
     if backend == "batch":
         be.run_batch()  # type: ignore[attr-defined]
     traj = be.finish()
@@ -156,11 +130,11 @@ def run_points(
         association=association,
         index=np.array(index),
         poses=np.array([p[1] for p in traj]).reshape(-1, 3),
-        filtered=np.array(filtered).reshape(-1, 3),
+        filtered=np.array(step.filtered).reshape(-1, 3),
         odometry=np.array(odo),
         landmarks={lid: np.asarray(m) for lid, m in means.items()},
         wall_time=wall,
-        latencies=latencies,
+        latencies=step.latencies,
         stats=stats,
         assigned=assigned,
     )
