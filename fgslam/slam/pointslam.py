@@ -96,10 +96,11 @@ def run_points(
             feats.append(Feature("point", z, c, source="laser", laser_support=1))
         given = [s.landmark for s in sights] if association == "given" else None
         where = step.keyframe(float(k), feats, pre, np.zeros(3), given)
-        if given is None:
-            for s, lid in zip(sights, where, strict=True):
-                ok = lid is not None and step.landmarks[step.map.resolve(lid)].active
-                assigned.append((s.landmark, step.map.resolve(lid) if ok else -1))
+        if given is None:  # resolved at the end (a tentative's sightings count if confirmed)
+            assigned.extend(
+                (s.landmark, -1 if lid is None else lid)
+                for s, lid in zip(sights, where, strict=True)
+            )
 
     keyframe(0, steps[0].i, None)
     for k, st in enumerate(steps, 1):
@@ -118,6 +119,11 @@ def run_points(
             )
         )
     stats = step.stats
+    lms = step.landmarks
+    assigned = [
+        (g, lms[step.map.resolve(o)].id if o >= 0 and lms[step.map.resolve(o)].active else -1)
+        for g, o in assigned
+    ]
     if backend == "batch":
         be.run_batch()  # type: ignore[attr-defined]
     traj = be.finish()
