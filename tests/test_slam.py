@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -17,8 +18,8 @@ from fgslam.slam import models
 from fgslam.slam.ekf import EkfBackend
 from fgslam.slam.mapping import MapParams
 from fgslam.slam.outputs import write_outputs
-from fgslam.slam.step import SlamStep
 from fgslam.slam.runner import run_backends
+from fgslam.slam.step import SlamStep
 
 
 @pytest.fixture(scope="module")
@@ -275,12 +276,13 @@ def test_map_json_endpoints_of_a_line_stored_with_negative_d_are_not_mirrored(tm
     step.be.x[o : o + 2] = (a + math.pi, -d)  # the same line, the other parametrisation
     f2 = _line_feature((0.3, 2.0), want, End.SONAR, End.SONAR)
     step.keyframe(2.0, [f2], _still(), None)
-    class R:
-        landmarks = {lid: step.landmarks[lid]}
-        means = {lid: models.normalize("line", step.be.x[o : o + 2])}
-        landmark_covs: dict = {}
 
-    (entry,) = map_dict(R())["landmarks"]
+    res = SimpleNamespace(
+        landmarks={lid: step.landmarks[lid]},
+        means={lid: models.normalize("line", step.be.x[o : o + 2])},
+        landmark_covs={},
+    )
+    (entry,) = map_dict(res)["landmarks"]
     assert entry["d"] > 0
     got = np.array(entry["endpoints"])
     # the measured ends (not their mirror images about the foot point, 2 m apart)

@@ -88,6 +88,7 @@ class Association:
     d2: list[float]
     joint_d2: float = 0.0
     stats: Counter = field(default_factory=Counter)
+    compatible: set[int] = field(default_factory=set)  # individually compatible with any
 
 
 @dataclass
@@ -174,6 +175,7 @@ def associate(
             hits.append(_Pair(lid, d2, ov, e, A))
         hits.sort(key=lambda h: h.d2)
         compat.append(hits)
+        out.compatible.update(h.lid for h in hits)
     # 4. the strategy
     if p.method == "nn":
         for i, hits in enumerate(compat):

@@ -83,7 +83,7 @@ class GraphBackend(Backend):
     def __init__(
         self,
         covariances: bool = True,
-        robust: str = "huber",
+        robust: str = "cauchy",
         merge_sigma: float = 0.01,
         relinearize_threshold: float = 0.01,
         relinearize_skip: int = 10,

@@ -27,8 +27,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from factors.geometry import wrap_angle
-from factors.line import line_difference
+from factors.geometry import wrap_angle, wrap_angles
+from factors.line import flips, line_difference
 from fgslam.frontend.features import Feature
 from fgslam.slam import geometry, models
 from fgslam.slam.association import Candidate, chi2_gate
@@ -81,6 +81,19 @@ def _difference(kind: str, a: NDArray[np.float64], b: NDArray[np.float64]):
     if kind == "corner":
         e[2] = wrap_angle(e[2])
     return e, -np.eye(len(e))
+
+
+def _differences(kind: str, a: NDArray[np.float64], M: NDArray[np.float64]) -> NDArray[np.float64]:
+    """:func:`_difference` of ``a`` against each row of ``M`` (no Jacobians), vectorised."""
+    E = a[None, :] - M
+    if kind == "line":
+        da = wrap_angles(E[:, 0])
+        f = flips(da)
+        E[:, 0] = np.where(f, wrap_angles(da - math.pi), da)
+        E[:, 1] = np.where(f, a[1] + M[:, 1], E[:, 1])
+    elif kind == "corner":
+        E[:, 2] = wrap_angles(E[:, 2])
+    return E
 
 
 class Lifecycle:
@@ -211,32 +224,38 @@ class Lifecycle:
         a.sightings += b.sightings
 
     def duplicates(self, lids: list[int], means, estimate) -> list[tuple[int, int]]:
-        """Pairs (keep, drop) among the active landmarks near ``lids`` that pass the
-        chi-square test on their difference with the joint covariance (lines: and whose
-        segments overlap or leave at most ``max_gap``)."""
+        """Pairs (keep, drop): each landmark of ``lids`` against the active landmarks of its
+        kind that pass a cheap pre-gate on the means (vectorised), then the chi-square test on
+        their difference with the joint covariance (lines: and whose segments overlap or leave
+        at most ``max_gap``). The older landmark is kept."""
         p = self.p
-        active = [lid for lid, lm in self.landmarks.items() if lm.active and lid in means]
+        by_kind: dict[str, tuple[list[int], NDArray[np.float64]]] = {}
+        for lid, lm in self.landmarks.items():
+            if lm.active and lid in means:
+                by_kind.setdefault(lm.kind, ([], []))[0].append(lid)
+        for kind, (ids, _) in list(by_kind.items()):
+            by_kind[kind] = (ids, np.array([means[i] for i in ids], dtype=float))
         out: list[tuple[int, int]] = []
         done: set[int] = set()
         for a in lids:
-            if a not in means or a in done or not self.landmarks[a].active:
+            la = self.landmarks[a]
+            if a not in means or a in done or not la.active:
                 continue
-            kind = self.landmarks[a].kind
-            for b in active:
-                if b == a or b in done or self.landmarks[b].kind != kind:
+            ids, M = by_kind[la.kind]
+            E = _differences(la.kind, np.asarray(means[a], dtype=float), M)
+            lim = np.where(models.ANGULAR[la.kind], p.duplicate_pregate_rad, p.duplicate_pregate_m)
+            for j in np.flatnonzero(np.all(np.abs(E) <= lim, axis=1)):
+                b = ids[j]
+                lb = self.landmarks[b]
+                if b == a or b in done:
                     continue
-                e, _ = _difference(kind, means[a], means[b])
-                lim = np.where(models.ANGULAR[kind], p.duplicate_pregate_rad, p.duplicate_pregate_m)
-                if np.any(np.abs(e) > lim):
-                    continue
-                la, lb = self.landmarks[a], self.landmarks[b]
-                if kind == "line":
+                if la.kind == "line":
                     if la.ends is None or lb.ends is None:
                         continue
                     if geometry.overlap(means[a], la.ends, lb.ends) < -p.max_gap:
                         continue
                 m, P = estimate([a, b])
-                e, Hb = _difference(kind, m[a], m[b])
+                e, Hb = _difference(la.kind, m[a], m[b])
                 n = len(e)
                 J = np.hstack([np.eye(n), Hb])
                 S = J @ P[3:, 3:] @ J.T
@@ -248,7 +267,7 @@ class Lifecycle:
                     keep, drop = (a, b) if la.created <= lb.created else (b, a)
                     out.append((keep, drop))
                     done.update((a, b))
-                    self.stats[f"{kind}_duplicates_merged"] += 1
+                    self.stats[f"{la.kind}_duplicates_merged"] += 1
                     break
         return out
 

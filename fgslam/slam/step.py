@@ -81,6 +81,7 @@ class SlamStep:
                 lc.merge(keep, drop)
         self._pending_merges = []
         pose = be.pose()
+        self._compatible: set[int] = set()
         if given is not None:
             where = self._keyframe_given(t, features, given)
         else:
@@ -103,8 +104,9 @@ class SlamStep:
                 self._update_geometry(lid, f, pose, lm.mean)
         if given is None:
             lc.expire(self.k)
-            if self.p.duplicate_p > 0 and seen:
-                self._pending_merges = lc.duplicates(sorted(seen), means, be.estimate)
+            query = seen | {lc.resolve(i) for i in self._compatible}
+            if self.p.duplicate_p > 0 and query:
+                self._pending_merges = lc.duplicates(sorted(query), means, be.estimate)
             lc.visibility(pose, means, seen)
             self.stats.update(lc.stats)
             lc.stats.clear()
@@ -137,6 +139,7 @@ class SlamStep:
         means = be.means()
         a = associate(features, pose, lc.candidates(pose, means), means, be.estimate, self.assoc)
         self.stats.update(a.stats)
+        self._compatible = a.compatible
         # line merges decided by a measurement covering two map lines (paper IV)
         for group in a.merges:
             group = sorted({lc.resolve(g) for g in group}, key=lambda i: lc.landmarks[i].created)
