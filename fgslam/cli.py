@@ -151,7 +151,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
             bar(min(t - t_first[0], total), total)
 
     try:
-        res = run_slam(reader, cfg, args.backend, args.sensors, progress)
+        res = run_slam(
+            reader, cfg, args.backend, args.sensors, progress, association=args.association
+        )
     finally:
         bar.close()
     rep = write_outputs(res, args.out, reader.meta.get("true_map"))
@@ -209,13 +211,13 @@ def _print_summary(rep: dict, out: str) -> None:
 def _cmd_compare(args: argparse.Namespace) -> int:
     from fgslam.slam.compare import compare
 
-    rows = _compare(args.log, args.out, args.config)
+    rows = _compare(args.log, args.out, args.config, args.association)
     print((Path(args.out) / "comparison.md").read_text(), end="")
     print(f"wrote {args.out}/comparison.json, comparison.md, comparison.png and one folder per run")
     return 0 if rows and compare else 1
 
 
-def _compare(log: str, out: str, config: str | None) -> list:
+def _compare(log: str, out: str, config: str | None, association: str = "jcbb") -> list:
     from tqdm import tqdm
 
     from fgslam.slam.compare import compare
@@ -228,7 +230,9 @@ def _compare(log: str, out: str, config: str | None) -> list:
         disable=None,
         leave=False,
     ) as bar:
-        return compare(log, out, config, on_done=lambda _res: bar.update(1))
+        return compare(
+            log, out, config, on_done=lambda _res: bar.update(1), association=association
+        )
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -494,6 +498,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="laser and sonar fused (the paper), laser only, or sonar only (default fused)",
     )
     p.add_argument(
+        "--association",
+        choices=["jcbb", "nn"],
+        default="jcbb",
+        help="data association: joint compatibility (JCBB) or nearest neighbour (default jcbb)",
+    )
+    p.add_argument(
         "--config", metavar="ROBOT.toml", help="robot configuration (default: the log's)"
     )
     p.add_argument(
@@ -554,6 +564,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("log", help="native log file (.log or .log.gz)")
     p.add_argument(
         "--config", metavar="ROBOT.toml", help="robot configuration (default: the log's)"
+    )
+    p.add_argument(
+        "--association",
+        choices=["jcbb", "nn"],
+        default="jcbb",
+        help="data association: joint compatibility (JCBB) or nearest neighbour (default jcbb)",
     )
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")
     p.set_defaults(func=_cmd_compare)

@@ -293,3 +293,23 @@ def test_backend_failure_mid_run_returns_the_result_up_to_the_last_good_keyframe
     assert "partial" not in ekf.stats and len(ekf.times) > 30
     truth = evaluation.interpolate_poses(isam.truth_t, isam.truth, isam.times)
     assert evaluation.ate(isam.poses, truth)["rmse"] < 0.1
+
+
+def test_cli_run_takes_the_association_option(tmp_path):
+    """``fgslam run --association nn|jcbb``: both run; only JCBB searches hypotheses; map.json
+    says each landmark's status."""
+    from fgslam.cli import main
+
+    log = tmp_path / "s.log.gz"
+    assert main(["simulate", "--seed", "1", "--duration", "12", "--out", str(log)]) == 0
+    stats = {}
+    for method in ("nn", "jcbb"):
+        out = tmp_path / method
+        args = ["run", str(log), "--backend", "ekf", "--association", method, "--out", str(out)]
+        assert main(args) == 0
+        stats[method] = json.loads((out / "report.json").read_text())["statistics"]
+        lms = json.loads((out / "map.json").read_text())["landmarks"]
+        assert lms and all(lm["status"] in ("confirmed", "unreliable") for lm in lms)
+    assert stats["jcbb"].get("jcbb_nodes", 0) > 0 and "jcbb_nodes" not in stats["nn"]
+    with pytest.raises(SystemExit):
+        main(["run", str(log), "--association", "greedy", "--out", str(tmp_path / "x")])

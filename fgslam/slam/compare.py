@@ -22,10 +22,12 @@ from fgslam.slam.outputs import write_outputs
 from fgslam.slam.runner import BACKENDS, SENSORS, SlamResult, run_backends
 
 
-def _run_mode(log: str, config: str | None, sensors: str, backends: list[str]) -> list[SlamResult]:
+def _run_mode(
+    log: str, config: str | None, sensors: str, backends: list[str], association: str = "jcbb"
+) -> list[SlamResult]:
     reader = LogReader(log)
     cfg = load_config(config) if config else reader.config
-    return run_backends(reader, cfg, backends, sensors)
+    return run_backends(reader, cfg, backends, sensors, association=association)
 
 
 def compare(
@@ -36,9 +38,11 @@ def compare(
     sensors: tuple[str, ...] = SENSORS,
     workers: int | None = None,
     on_done: Callable[[SlamResult], None] | None = None,
+    association: str = "jcbb",
 ) -> list[dict[str, Any]]:
     """Every backend in every sensor mode on ``log``; one process per sensor mode (the front
-    end runs once per mode and feeds all backends). Returns the rows of the comparison."""
+    end runs once per mode and feeds all backends); ``association`` "jcbb" or "nn" for every
+    run. Returns the rows of the comparison."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     with LogReader(log) as r:
@@ -46,7 +50,10 @@ def compare(
     workers = workers or min(len(sensors), os.cpu_count() or 1)
     results: list[SlamResult] = []
     with ProcessPoolExecutor(max_workers=workers) as pool:
-        futs = [pool.submit(_run_mode, str(log), config, s, list(backends)) for s in sensors]
+        futs = [
+            pool.submit(_run_mode, str(log), config, s, list(backends), association)
+            for s in sensors
+        ]
         for fut in futs:
             for res in fut.result():
                 results.append(res)
