@@ -5,11 +5,13 @@
   candidates too (an individual gate), so a second sighting is not a second tentative.
 - A tentative is *confirmed* (enters the backend) after ``confirm_sightings`` consistent
   sightings over at least ``confirm_keyframes`` keyframes, and only when its sightings
-  constrain it: every standard deviation of its fused world estimate below
-  ``confirm_sigma`` (m; rad for angles). A landmark seen from poses that do not constrain
-  it (e.g. bearing-only-like sightings from one place) never reaches the estimator, where
-  it would make the system indeterminate. A tentative not seen for ``tentative_keyframes``
-  keyframes is discarded (counted).
+  constrain it: every standard deviation of the estimate its sightings alone give (their
+  information summed, relative to the robot, so that the robot's own drift does not count)
+  below ``confirm_sigma_m`` (default: a quarter of ``max_range``; a landmark known worse
+  than that is not localised) and ``confirm_sigma_rad`` for angles. A landmark seen from
+  poses that do not constrain it (e.g. bearing-only-like sightings from one place) never
+  reaches the estimator, where it would make the system indeterminate. A tentative not
+  seen for ``tentative_keyframes`` keyframes is discarded (counted).
 - Duplicates of every kind: two confirmed landmarks whose difference passes a chi-square
   test with their joint covariance (and, lines, whose segments overlap or nearly touch) are
   merged into the older one; the dropped id resolves to the kept one.
@@ -59,6 +61,7 @@ class Landmark:
     mean: NDArray[np.float64] | None = None  # tentatives: fused world estimate
     cov: NDArray[np.float64] | None = None
     line: NDArray[np.float64] | None = None  # lines: the estimate the ends were last put on
+    info: NDArray[np.float64] | None = None  # tentatives: information of the sightings alone
 
     @property
     def active(self) -> bool:
@@ -156,7 +159,8 @@ class Lifecycle:
         """A feature no confirmed landmark took: fuse it into the compatible tentative (the
         nearest by Mahalanobis distance) or start one. Returns (id, confirmed now)."""
         lm_w, Hx, Hz = models.to_world(f.kind, pose, f.z)
-        C = Hx @ Pxx @ Hx.T + Hz @ f.cov @ Hz.T
+        Cz = Hz @ f.cov @ Hz.T  # the sighting alone (relative to the robot)
+        C = Hx @ Pxx @ Hx.T + Cz
         best, best_d2 = None, chi2_gate(len(lm_w), self.p.tentative_gate_p)
         for lid, lm in self.landmarks.items():
             if lm.status != TENTATIVE or lm.kind != f.kind or lm.last_keyframe == k:
@@ -173,6 +177,7 @@ class Lifecycle:
             lid = self.new_id(t, f, TENTATIVE)
             lm = self.landmarks[lid]
             lm.mean, lm.cov = lm_w, C
+            lm.info = np.zeros((len(lm_w), len(lm_w)))
             self.stats[f"{f.kind}s_tentative"] += 1
         else:
             lid, lm = best, self.landmarks[best]
@@ -183,6 +188,10 @@ class Lifecycle:
             lm.mean = models.normalize(f.kind, lm.mean + K @ e)
             lm.cov = lm.cov - K @ (-Hb) @ lm.cov
             lm.cov = 0.5 * (lm.cov + lm.cov.T)
+        try:
+            lm.info = lm.info + np.linalg.inv(Cz)
+        except np.linalg.LinAlgError:
+            pass  # a degenerate sighting adds nothing
         lm.sightings += 1
         if lm.last_keyframe != k:
             lm.keyframes += 1
@@ -193,8 +202,13 @@ class Lifecycle:
         p = self.p
         if lm.sightings < p.confirm_sightings or lm.keyframes < p.confirm_keyframes:
             return False
-        sig = np.sqrt(np.maximum(np.diag(lm.cov), 0.0))
-        lim = np.where(models.ANGULAR[lm.kind], p.confirm_sigma_rad, p.confirm_sigma_m)
+        try:
+            sig = np.sqrt(np.maximum(np.diag(np.linalg.inv(lm.info)), 0.0))
+        except np.linalg.LinAlgError:
+            sig = np.full(len(lm.info), np.inf)
+        lim = np.where(
+            models.ANGULAR[lm.kind], p.confirm_sigma_rad, p.confirm_sigma_m or p.max_range / 4
+        )
         if not np.all(sig <= lim):
             self.stats[f"{lm.kind}s_unconstrained"] += 1
             return False

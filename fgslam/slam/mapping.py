@@ -38,8 +38,8 @@ class MapParams:
     # lifecycle (see fgslam.slam.lifecycle; N and the window: experiments/README.md)
     confirm_sightings: int = 2
     confirm_keyframes: int = 2
-    confirm_sigma_m: float = 0.5  # a confirmed landmark's sightings constrain it this well
-    confirm_sigma_rad: float = 0.35
+    confirm_sigma_m: float | None = None  # sightings constrain a landmark this well (None:
+    confirm_sigma_rad: float = 0.5  # max_range / 4); angles: rad
     tentative_keyframes: int = 10  # a tentative unseen this long is discarded
     tentative_gate_p: float = 0.99
     duplicate_p: float = 0.99
