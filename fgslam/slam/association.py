@@ -89,6 +89,7 @@ class Association:
     joint_d2: float = 0.0
     stats: Counter = field(default_factory=Counter)
     compatible: set[int] = field(default_factory=set)  # individually compatible with any
+    pose_cov: NDArray[np.float64] | None = None  # the estimate's pose covariance, if asked
 
 
 @dataclass
@@ -137,6 +138,7 @@ def associate(
         return out
     # 2. the fresh estimate: means and the joint covariance of [pose, ids]
     means, P = estimate(ids)
+    out.pose_cov = P[:3, :3].copy()
     offs, o = {}, 3
     for lid in ids:
         offs[lid] = o

@@ -35,7 +35,7 @@ from fgslam.frontend.features import Feature
 from fgslam.slam import geometry, models
 from fgslam.slam.association import Candidate, chi2_gate
 
-TENTATIVE, CONFIRMED, UNRELIABLE, DISCARDED = "tentative", "confirmed", "unreliable", "discarded"
+TENTATIVE, CONFIRMED, UNRELIABLE = "tentative", "confirmed", "unreliable"
 
 
 @dataclass
@@ -221,11 +221,15 @@ class Lifecycle:
         self.stats[f"{lm.kind}s_confirmed"] += 1
 
     def expire(self, k: int) -> None:
-        """Discard the tentatives not seen for ``tentative_keyframes`` keyframes."""
-        for lm in self.landmarks.values():
-            if lm.status == TENTATIVE and k - lm.last_keyframe > self.p.tentative_keyframes:
-                lm.status = DISCARDED
-                self.stats[f"{lm.kind}s_never_confirmed"] += 1
+        """Discard (forget) the tentatives not seen for ``tentative_keyframes`` keyframes;
+        their ids are not reused."""
+        old = [
+            lid
+            for lid, lm in self.landmarks.items()
+            if lm.status == TENTATIVE and k - lm.last_keyframe > self.p.tentative_keyframes
+        ]
+        for lid in old:
+            self.stats[f"{self.landmarks.pop(lid).kind}s_never_confirmed"] += 1
 
     # ------------------------------------------------------------------ merges, visibility
 

@@ -124,11 +124,15 @@ def run_points(
             )
         )
     stats = step.stats
-    lms = step.landmarks
-    assigned = [
-        (g, lms[step.map.resolve(o)].id if o >= 0 and lms[step.map.resolve(o)].active else -1)
-        for g, o in assigned
-    ]
+    lms = step.landmarks  # discarded tentatives are forgotten: their sightings count as -1
+
+    def final(o: int) -> int:
+        if o < 0 or o not in lms:
+            return -1
+        o = step.map.resolve(o)
+        return o if lms[o].active else -1
+
+    assigned = [(g, final(o)) for g, o in assigned]
     if backend == "batch":
         be.run_batch()  # type: ignore[attr-defined]
     traj = be.finish()

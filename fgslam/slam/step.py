@@ -156,7 +156,7 @@ class SlamStep:
             be.observe(lid, f)
             where[i] = lid
             self.stats[f"{f.kind}s_associated"] += 1
-        Pxx = None
+        Pxx = a.pose_cov
         for i, f in enumerate(features):
             if where[i] is not None or a.ambiguous[i]:
                 continue
