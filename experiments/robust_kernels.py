@@ -17,12 +17,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
-from test_map_management import _park  # noqa: E402
+from test_map_management import _park
 
-from fgslam import evaluation  # noqa: E402
-from fgslam.slam import pointslam  # noqa: E402
-from fgslam.slam.graph import GraphBackend  # noqa: E402
-from fgslam.slam.models import ROBUST_KERNELS  # noqa: E402
+from fgslam import evaluation
+from fgslam.slam import pointslam
+from fgslam.slam.graph import GraphBackend
+from fgslam.slam.models import ROBUST_KERNELS
 
 
 def ate(data, truth, kernel: str, backend: str) -> float:
