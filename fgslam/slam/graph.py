@@ -67,11 +67,13 @@ class GraphBackend(Backend):
     "none": Gaussian); a merge is a robust tie of sigma ``merge_sigma`` (m, rad), never a
     hard equality. After the last keyframe, :meth:`finish` calls ``update()`` until the
     estimate moves less than ``converge_tol`` (or ``max_final_updates`` calls), so iSAM2's
-    final estimate is at the optimum its relinearisation allows. Relinearisation: every
+    final estimate is at the optimum. Relinearisation during the run: every
     ``relinearize_skip`` updates, of the variables whose step exceeds
-    ``relinearize_threshold`` (0.01, not GTSAM's 0.1: with robust kernels the weights are
-    only revisited at relinearisation, and on Victoria Park's first 300 steps 0.1 left iSAM2
-    12 cm from the batch optimum, 0.01 0.7 mm; experiments/README.md).
+    ``relinearize_threshold`` (GTSAM's 0.1: fast). That leaves variables with smaller steps at
+    old linearisation points, and with robust kernels their weights too (on Victoria Park's
+    first 300 steps: 12-18 cm from the batch optimum). So :meth:`finish` relinearises in full
+    once (a new ISAM2 over the same factors from the current estimate, threshold
+    ``final_threshold``) and updates until converged (experiments/README.md).
 
     :meth:`means` is a cache: refreshed in full every ``refresh_every`` keyframes, and for the
     landmarks each keyframe touched; association uses it only to pick candidates (a loose
@@ -85,8 +87,9 @@ class GraphBackend(Backend):
         covariances: bool = True,
         robust: str = "cauchy",
         merge_sigma: float = 0.01,
-        relinearize_threshold: float = 0.01,
+        relinearize_threshold: float = 0.1,
         relinearize_skip: int = 10,
+        final_threshold: float = 0.001,
         refresh_every: int = 10,
         max_final_updates: int = 20,
         converge_tol: float = 1e-5,
@@ -100,6 +103,7 @@ class GraphBackend(Backend):
         self.max_final_updates = max_final_updates
         self.converge_tol = converge_tol
         self.final_updates = 0
+        self.final_threshold = final_threshold
         self.failed: str | None = None
         self._start_cov = np.eye(3)
         params = gtsam.ISAM2Params()
@@ -292,18 +296,30 @@ class GraphBackend(Backend):
         return out
 
     def _converge(self) -> None:
-        """Extra ``update()`` calls until the largest change of the estimate (tangent norm
-        per variable) falls below ``converge_tol``; the count is ``final_updates``."""
-        prev = self.isam.calculateEstimate()
-        self.final_updates = 0
+        """Relinearise the whole graph at the current estimate (one new ISAM2, threshold
+        ``final_threshold``, relinearising at every update), then ``update()`` until the
+        largest change of the estimate (tangent, per component) falls below
+        ``converge_tol``; ``final_updates`` counts the extra updates."""
+        est = self.isam.calculateEstimate()
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(self.final_threshold)
+        params.relinearizeSkip = 1
+        fresh = gtsam.ISAM2(params)
+        try:
+            fresh.update(self.graph, est)
+        except RuntimeError:  # keep the incremental estimate
+            self._est = est
+            return
+        self.isam = fresh
+        prev = fresh.calculateEstimate()
+        self.final_updates = 1
         for _ in range(self.max_final_updates):
-            self.isam.update()
-            self.final_updates += 1
-            est = self.isam.calculateEstimate()
-            step = float(np.max(np.abs(prev.localCoordinates(est).vector()), initial=0.0))
-            prev = est
+            step = float(np.max(np.abs(est.localCoordinates(prev).vector()), initial=0.0))
             if step < self.converge_tol:
                 break
+            fresh.update()
+            self.final_updates += 1
+            est, prev = prev, fresh.calculateEstimate()
         self._est = prev
 
     def chi2_per_dof(self, values: gtsam.Values | None = None) -> float:
