@@ -134,7 +134,7 @@ def main() -> None:
     if args.replot:
         rows = json.loads((HERE / "out" / args.json).read_text())
         print(summarise(rows))
-        plot(rows, HERE / "paper_corridor.png")
+        plot(rows, HERE / args.json.replace(".json", ".png"))
         return
     rows: list[dict] = []
     with ProcessPoolExecutor(max_workers=args.workers) as pool:
@@ -145,7 +145,7 @@ def main() -> None:
     (HERE / "out").mkdir(exist_ok=True)
     (HERE / "out" / args.json).write_text(json.dumps(rows))
     print(summarise(rows))
-    plot(rows, HERE / "paper_corridor.png")
+    plot(rows, HERE / args.json.replace(".json", ".png"))
 
 
 if __name__ == "__main__":
