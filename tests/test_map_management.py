@@ -313,3 +313,38 @@ def test_cli_run_takes_the_association_option(tmp_path):
     assert stats["jcbb"].get("jcbb_nodes", 0) > 0 and "jcbb_nodes" not in stats["nn"]
     with pytest.raises(SystemExit):
         main(["run", str(log), "--association", "greedy", "--out", str(tmp_path / "x")])
+
+
+def test_two_disjoint_segments_of_one_wall_may_share_a_line():
+    """The documented exception to mutual exclusion: one wall seen as two segments (an
+    occluder in front of its middle) gives two line features that both observe the wall;
+    two overlapping segments may not."""
+    from fgslam.frontend.features import End
+
+    def line(y0, y1):
+        return Feature(
+            "line",
+            np.array([0.0, 2.0]),
+            np.diag([1e-4, 1e-4]),
+            "laser",
+            np.array([(2.0, y0), (2.0, y1)]),
+            End.OUTLIERS,
+            End.OUTLIERS,
+        )
+
+    means = {0: np.array([0.0, 2.0])}
+    ends = np.array([(2.0, -3.0), (2.0, 3.0)])
+    cands = [Candidate(0, "line", ends)]
+
+    def estimate(lids):
+        P = np.eye(3 + 2 * len(lids)) * 1e-6
+        return {i: means[i] for i in lids}, P
+
+    a = association.associate(
+        [line(-2.5, -0.5), line(0.5, 2.5)], np.zeros(3), cands, means, estimate
+    )
+    assert a.pairs == [0, 0]
+    a = association.associate(
+        [line(-2.5, 0.5), line(-0.5, 2.5)], np.zeros(3), cands, means, estimate
+    )
+    assert sorted(a.pairs, key=str) == [0, None]

@@ -3,8 +3,9 @@ and point (x, y) landmarks in one state vector (world frame, m, rad).
 
 Prediction composes the preintegrated odometry of eq 4 (its covariance in the previous
 keyframe's axes); updates use the shared measurement models of ``factors``; new landmarks are
-appended with their cross-covariances; merged lines are tied by a perfect pseudo-measurement
-and the dropped one is marginalised out of the state.
+appended with their cross-covariances; merged landmarks (any kind) are tied by a perfect
+pseudo-measurement (the one line-flip rule, ``factors.line.line_difference``) and the dropped
+one is marginalised out of the state.
 """
 
 from __future__ import annotations
