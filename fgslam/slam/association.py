@@ -63,7 +63,7 @@ class AssociationParams:
     sonar_line_gap: float = 1.0  # a sonar plane's foot point within this of a map line
     # residuals beyond these (rad or m, per component) cannot pass any sensible gate
     pregate: tuple[float, float, float] = (0.35, 1.0, 0.6)
-    max_nodes: int = 20000  # branch-and-bound budget per scan (then: the best so far)
+    max_nodes: int = 5000  # branch-and-bound budget per scan (then: the best so far)
 
 
 @dataclass(frozen=True)
@@ -295,6 +295,8 @@ def _jcbb(
         out.pairs[i], out.d2[i] = h.lid, h.d2
     out.joint_d2 = float(best["d2"]) if best["n"] else 0.0
     out.stats["jcbb_nodes"] += nodes[0]
+    if nodes[0] > p.max_nodes:
+        out.stats["jcbb_budget_exhausted"] += 1
 
 
 def _line_of(f: Feature, pose: NDArray[np.float64]) -> NDArray[np.float64]:
