@@ -107,6 +107,8 @@ class Lifecycle:
         self.landmarks: dict[int, Landmark] = {}
         self._next = 0
         self.stats: Counter = Counter()
+        self._tested: dict[tuple[int, int], int] = {}  # pair -> keyframe of a failed test
+        self.k = 0  # the current keyframe (set by the caller)
 
     def resolve(self, lid: int) -> int:
         while self.landmarks[lid].merged_into is not None:
@@ -272,6 +274,9 @@ class Lifecycle:
                         continue
                     if geometry.overlap(means[a], la.ends, lb.ends) < -p.max_gap:
                         continue
+                pair = (min(a, b), max(a, b))
+                if self.k - self._tested.get(pair, -(10**9)) < p.duplicate_retest:
+                    continue  # failed recently: the joint covariance query is the costly part
                 m, P = estimate([a, b])
                 e, Hb = _difference(la.kind, m[a], m[b])
                 n = len(e)
@@ -281,6 +286,7 @@ class Lifecycle:
                     d2 = float(e @ np.linalg.solve(S, e))
                 except np.linalg.LinAlgError:
                     continue
+                self._tested[pair] = self.k
                 if d2 < chi2_gate(n, p.duplicate_p):
                     keep, drop = (a, b) if la.created <= lb.created else (b, a)
                     out.append((keep, drop))

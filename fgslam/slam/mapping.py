@@ -45,6 +45,7 @@ class MapParams:
     duplicate_p: float = 0.99
     duplicate_pregate_m: float = 0.5
     duplicate_pregate_rad: float = 0.2
+    duplicate_retest: int = 10  # a pair that failed the test is tested again after this
     unseen_limit: int = 30  # predicted in view this often in a row, unseen: unreliable
 
     def association_params(self) -> AssociationParams:

@@ -68,6 +68,7 @@ class SlamStep:
         t0 = time.perf_counter()
         be, lc = self.be, self.map
         self.k += 1
+        lc.k = self.k
         if not self.started:
             be.start(t, np.zeros(3) if pose0 is None else pose0, self._start_cov)
             self.started = True
