@@ -28,8 +28,8 @@ from fgslam.slam.backend import Backend, Estimate
 class EkfBackend(Backend):
     """The paper's EKF. Protection matching the graph's robust factors: an innovation outside
     the chi-square gate ``gate_p`` (after the scan's earlier updates) is never applied
-    (counted as ``ekf_rejected``); every update is in Joseph form, exact for any gain and
-    safe where R is tiny (the merge pseudo-measurement)."""
+    (counted as ``ekf_rejected``); where R is tiny (the merge pseudo-measurement) the update
+    is in Joseph form, which keeps P positive semi-definite for any gain."""
 
     name = "ekf"
 
@@ -84,11 +84,13 @@ class EkfBackend(Backend):
         H: NDArray[np.float64],
         R: NDArray[np.float64],
         gate: bool = False,
+        joseph: bool = False,
     ) -> bool:
-        """EKF update for residual e = prediction - measurement with Jacobian H, in Joseph
-        form P' = (I - KH) P (I - KH)^T + K R K^T, expanded so that it costs O(n^2 m):
-        P - K (PH^T)^T - PH^T K^T + K S K^T. With ``gate``, an innovation outside the
-        chi-square gate is not applied (returns False)."""
+        """EKF update for residual e = prediction - measurement with Jacobian H. With
+        ``joseph`` (where R is tiny: the merge pseudo-measurement) in Joseph form
+        P' = (I - KH) P (I - KH)^T + K R K^T, expanded so that it costs O(n^2 m):
+        P - K (PH^T)^T - PH^T K^T + K S K^T; else P - K S K^T (half the cost). With
+        ``gate``, an innovation outside the chi-square gate is not applied (returns False)."""
         P = self.P
         PHt = P @ H.T
         S = H @ PHt + R
@@ -102,8 +104,11 @@ class EkfBackend(Backend):
                 return False
         K = np.linalg.solve(S, PHt.T).T
         self.x -= K @ e
-        KPHt = K @ PHt.T
-        self.P = P - KPHt - KPHt.T + K @ S @ K.T
+        if joseph:
+            KPHt = K @ PHt.T
+            self.P = P - KPHt - KPHt.T + K @ S @ K.T
+        else:
+            self.P = P - K @ (S @ K.T)
         self.P = 0.5 * (self.P + self.P.T)
         self.x[2] = wrap_angle(self.x[2])
         for o, kind in self.index.values():
@@ -153,7 +158,7 @@ class EkfBackend(Backend):
         H = np.zeros((n, self.x.size))
         H[:, ok : ok + n] = np.eye(n)
         H[:, od : od + n] = Hb
-        self._update(e, H, np.eye(n) * 1e-10)
+        self._update(e, H, np.eye(n) * 1e-10, joseph=True)
         keepmask = np.ones(self.x.size, dtype=bool)
         keepmask[od : od + n] = False
         self.x = self.x[keepmask]
