@@ -33,9 +33,10 @@ class EkfBackend(Backend):
 
     name = "ekf"
 
-    def __init__(self, gate_p: float = 0.9999) -> None:
+    def __init__(self, gate_p: float | None = 0.9999) -> None:
         super().__init__()
-        self.gate = {n: float(chi2.ppf(gate_p, n)) for n in (1, 2, 3)}
+        # None: no gate (the association is given and trusted, e.g. Victoria Park's file)
+        self.gate = {n: float(chi2.ppf(gate_p, n)) if gate_p else math.inf for n in (1, 2, 3)}
         self.stats: Counter = Counter()
         self.x = np.zeros(3)
         self.P = np.zeros((3, 3))

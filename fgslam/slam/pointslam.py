@@ -85,7 +85,10 @@ def run_points(
         raise ValueError(f"unknown backend {backend!r}; expected one of {BACKENDS}")
     if association not in ASSOCIATIONS:
         raise ValueError(f"unknown association {association!r}; expected one of {ASSOCIATIONS}")
-    be: Backend = EkfBackend() if backend == "ekf" else GraphBackend(covariances=False)
+    if backend == "ekf":  # a given association is trusted: the EKF's gate is for its own
+        be: Backend = EkfBackend(gate_p=None if association == "given" else 0.9999)
+    else:
+        be = GraphBackend(covariances=False)
     step = SlamStep(be, map_params or POINT_MAP_PARAMS)
     steps = data.steps[:limit] if limit is not None else data.steps
     index = [steps[0].i]
