@@ -428,6 +428,7 @@ def _result(
     finish = time.perf_counter() - t0
     st = Counter(stats)
     st.update(sess.stats)
+    st.update(getattr(sess.be, "stats", {}))  # e.g. the EKF's rejected innovations
     if sess.failed is not None:  # after the updates: Counter cannot add a dict
         st["partial"] = dict(sess.failed)
     if name == "batch":
