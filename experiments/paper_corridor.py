@@ -1,7 +1,8 @@
 """The paper's experiment over many seeds: the simulated corridor run with every backend (EKF,
 iSAM2, batch) and sensor mode (fused, laser only, sonar only).
 
-Run: python experiments/paper_corridor.py [--seeds 10] [--workers 2]
+Run: python experiments/paper_corridor.py [--seeds 10] [--workers 2] [--sensors fused ...]
+[--association jcbb|nn] [--json NAME]
 Prints a table of means over seeds (ATE RMSE, maximum error, final error, NEES, landmarks,
 time) and the share of seeds in which the run "kept track" (maximum position error below
 0.5 m); writes experiments/paper_corridor.png and the per-seed reports to
@@ -34,17 +35,20 @@ HERE = Path(__file__).resolve().parent
 KEPT_TRACK = 0.5  # m of maximum position error
 
 
-def one_seed(seed: int) -> list[dict]:
+def one_seed(seed: int, sensors_list=SENSORS, association: str = "jcbb") -> list[dict]:
     with tempfile.TemporaryDirectory() as d:
         log = Path(d) / "run.log.gz"
         simulate_to_log(load_world("corridor"), load_config(), log, seed)
         reader = LogReader(log)
         true_map = reader.meta["true_map"]
         rows = []
-        for sensors in SENSORS:
-            for res in run_backends(LogReader(log), reader.config, list(BACKENDS), sensors):
+        for sensors in sensors_list:
+            for res in run_backends(
+                LogReader(log), reader.config, list(BACKENDS), sensors, association=association
+            ):
                 rep = report_dict(res, true_map)
                 rep["seed"] = seed
+                rep["association"] = association
                 ref = evaluation.interpolate_poses(res.truth_t, res.truth, res.times)
                 err = evaluation.position_errors(res.poses, ref, align=False)
                 rep["error_curve"] = [res.times.tolist()[::10], err.tolist()[::10]]
@@ -120,24 +124,28 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=10)
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--sensors", nargs="+", default=list(SENSORS), choices=SENSORS)
+    ap.add_argument("--association", default="jcbb", choices=["jcbb", "nn"])
+    ap.add_argument("--json", default="paper_corridor.json", help="name in experiments/out")
     ap.add_argument(
         "--replot", action="store_true", help="table and figure from experiments/out only"
     )
     args = ap.parse_args()
     if args.replot:
-        rows = json.loads((HERE / "out" / "paper_corridor.json").read_text())
+        rows = json.loads((HERE / "out" / args.json).read_text())
         print(summarise(rows))
-        plot(rows, HERE / "paper_corridor.png")
+        plot(rows, HERE / args.json.replace(".json", ".png"))
         return
     rows: list[dict] = []
     with ProcessPoolExecutor(max_workers=args.workers) as pool:
-        for rs in pool.map(one_seed, range(args.seeds)):
+        n = args.seeds
+        for rs in pool.map(one_seed, range(n), [tuple(args.sensors)] * n, [args.association] * n):
             rows.extend(rs)
             print(f"seed {rs[0]['seed']} done", flush=True)
     (HERE / "out").mkdir(exist_ok=True)
-    (HERE / "out" / "paper_corridor.json").write_text(json.dumps(rows))
+    (HERE / "out" / args.json).write_text(json.dumps(rows))
     print(summarise(rows))
-    plot(rows, HERE / "paper_corridor.png")
+    plot(rows, HERE / args.json.replace(".json", ".png"))
 
 
 if __name__ == "__main__":

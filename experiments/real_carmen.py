@@ -2,7 +2,7 @@
 against their corrected (GMapping) poses, next to odometry alone.
 
 Run: python experiments/real_carmen.py [--logs intel freiburg-079] [--backends ekf isam2 batch]
-       [--max-scans N]
+       [--max-scans N] [--association jcbb|nn]
 Reads ``../shared/data/<log>-corrected.log.gz`` with fgslam.readers.carmen (odometry rebuilt
 as inverse(P_{k-1}) * ODOM_before_k, the corrected poses as the reference trajectory, not
 ground truth), runs the front end in "laser" mode and each backend (EKF alone, on the first
@@ -44,7 +44,11 @@ def limited(log: CarmenLog, max_scans: int | None):
 
 
 def run(
-    name: str, backends: list[str], max_scans: int | None, ekf_max_scans: int | None
+    name: str,
+    backends: list[str],
+    max_scans: int | None,
+    ekf_max_scans: int | None,
+    association: str = "jcbb",
 ) -> list[dict]:
     path = DATA / f"{name}-corrected.log.gz"
     rows = []
@@ -56,7 +60,9 @@ def run(
             n = min(n or ekf_max_scans, ekf_max_scans)
         t0 = time.perf_counter()
         try:
-            results = run_backends(limited(log, n), log.config, group, "laser")
+            results = run_backends(
+                limited(log, n), log.config, group, "laser", association=association
+            )
         except BackendError as exc:
             for b in group:
                 rows.append({"log": name, "backend": b, "error": str(exc)})
@@ -76,6 +82,9 @@ def run(
                             for k in ("line", "corner")
                         )
                     ),
+                    "never": sum(v for k, v in res.stats.items() if k.endswith("_never_confirmed")),
+                    "unreliable": sum(lm.status == "unreliable" for lm in res.landmarks.values()),
+                    "partial": res.stats.get("partial"),
                     "ate": evaluation.ate(res.poses, ref),
                     "ate_odo": evaluation.ate(res.odometry, ref),
                     "rpe": evaluation.rpe(res.poses, ref, 1.0),
@@ -101,6 +110,9 @@ def print_row(r: dict) -> None:
         print(f"| {r['log']} | {r['backend']} | failed: {r['error']} |", flush=True)
         return
     lm = ", ".join(f"{v} {k}s" for k, v in r["landmarks"].items())
+    lm += f" ({r['unreliable']} unreliable; {r['never']} tentative never confirmed)"
+    if r.get("partial"):
+        lm += f" PARTIAL: {r['partial']}"
     print(
         f"| {r['log']} | {r['backend']} | {r['scans']} | {r['distance']:.0f} | {lm} "
         f"| {r['ate']['rmse']:.2f} | {r['ate']['max']:.2f} | {r['ate_odo']['rmse']:.2f} "
@@ -160,11 +172,13 @@ def main() -> None:
     ap.add_argument(
         "--png", type=Path, default=Path(__file__).with_suffix(".png"), help="figure to write"
     )
+    ap.add_argument("--association", choices=["jcbb", "nn"], default="jcbb")
     args = ap.parse_args()
+    print(f"association: {args.association}")
     print(HEADER, flush=True)
     rows: list[dict] = []
     for name in args.logs:  # rows and the figure as each log finishes
-        new = run(name, args.backends, args.max_scans, args.ekf_max_scans)
+        new = run(name, args.backends, args.max_scans, args.ekf_max_scans, args.association)
         for r in new:
             print_row(r)
         rows += new

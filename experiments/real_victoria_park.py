@@ -1,7 +1,7 @@
 """Victoria Park (ACFR): EKF, iSAM2 and batch with the given and with the project's own data
 association (fgslam.slam.pointslam), on ``../shared/data/victoria_park.txt``.
 
-Run: python experiments/real_victoria_park.py [--limit N]
+Run: python experiments/real_victoria_park.py [--limit N] [--association jcbb|nn]
 Every odometry step is a keyframe; sightings are point features (bearing, range) with the
 file's x-y covariance carried through the polar Jacobian. The file has no ground truth: the
 table gives each run's RMS position difference from the batch solution with the given
@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import matplotlib
@@ -23,7 +24,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from fgslam.readers.victoria import read_victoria
-from fgslam.slam.pointslam import association_agreement, run_points
+from fgslam.slam.pointslam import POINT_MAP_PARAMS, association_agreement, run_points
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "victoria_park.txt"
 
@@ -40,6 +41,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--limit", type=int, help="only the first N odometry steps")
     ap.add_argument("--data", type=Path, default=DATA)
+    ap.add_argument(
+        "--association", choices=["jcbb", "nn"], default="jcbb", help="own association method"
+    )
     args = ap.parse_args()
     data = read_victoria(args.data)
     print(
@@ -49,7 +53,8 @@ def main() -> None:
     runs = []
     for assoc, scale in (("given", 1.0), ("own", 1.0), ("own", 100.0)):
         for backend in ("ekf", "isam2", "batch"):
-            r = run_points(data, backend, assoc, limit=args.limit, odometry_scale=scale)
+            params = replace(POINT_MAP_PARAMS, association=args.association)
+            r = run_points(data, backend, assoc, params, limit=args.limit, odometry_scale=scale)
             runs.append((assoc, scale, r))
     ref = next(r for a, _, r in runs if a == "given" and r.backend == "batch")
     odo = ref.odometry

@@ -26,6 +26,25 @@ IDENTITY_MOUNT: Mount = (0.0, 0.0, 0.0)
 HALF_PI = 0.5 * pi
 
 
+def flips(angle_residual: float | NDArray[np.float64]) -> bool | NDArray[np.bool_]:
+    """THE rule for the two parametrisations of a line, (alpha, d) and (alpha + pi, -d): two
+    descriptions of a line are compared in the form whose angles differ by at most pi/2;
+    ``angle_residual`` (wrapped) beyond that means "compare against (alpha + pi, -d)". Every
+    residual, merge and association of lines uses this function (vectorised on arrays)."""
+    return abs(angle_residual) > HALF_PI
+
+
+def line_difference(a: ArrayLike, b: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Difference a - b of two world lines as the same line (either parametrisation, by
+    :func:`flips`): [angle wrapped, distance], and its Jacobian w.r.t. b (w.r.t. a: identity)."""
+    da = wrap_angle(float(a[0]) - float(b[0]))
+    if flips(da):
+        return np.array([wrap_angle(da - pi), float(a[1]) + float(b[1])]), np.array(
+            [[-1.0, 0.0], [0.0, 1.0]]
+        )
+    return np.array([da, float(a[1]) - float(b[1])]), -np.eye(2)
+
+
 def normalize_line(alpha: float, d: float) -> tuple[float, float]:
     """The (alpha, d) with d >= 0 and alpha in (-pi, pi] for the same line."""
     if d < 0:
@@ -49,7 +68,7 @@ def _line_terms(
     d = dw - xs * ca - ys * sa
     e0 = remainder(aw - th - mth - am, TWO_PI)
     sg = 1.0
-    if abs(e0) > HALF_PI:  # use the (alpha + pi, -d) form of the prediction
+    if flips(e0):  # use the (alpha + pi, -d) form of the prediction
         e0 = remainder(e0 + pi, TWO_PI)
         sg = -1.0
     return (

@@ -77,10 +77,13 @@ def point_factor(
     measured: ArrayLike,
     covariance: ArrayLike,
     mount: Mount = IDENTITY_MOUNT,
+    robust: gtsam.noiseModel.mEstimator.Base | None = None,
 ) -> gtsam.BearingRangeFactor2D:
     """Built-in ``BearingRangeFactor2D`` for a sensor-frame (phi, r) with 2x2 covariance
-    (order [bearing, range], as GTSAM's error)."""
+    (order [bearing, range], as GTSAM's error); ``robust``: an M-estimator wrapped around
+    the Gaussian noise (``noiseModel.Robust``)."""
     z, C = bearing_range_to_robot_frame(measured, covariance, mount)
-    return gtsam.BearingRangeFactor2D(
-        pose_key, point_key, gtsam.Rot2(z[0]), z[1], gtsam.noiseModel.Gaussian.Covariance(C)
-    )
+    noise = gtsam.noiseModel.Gaussian.Covariance(C)
+    if robust is not None:
+        noise = gtsam.noiseModel.Robust.Create(robust, noise)
+    return gtsam.BearingRangeFactor2D(pose_key, point_key, gtsam.Rot2(z[0]), z[1], noise)

@@ -201,7 +201,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
     tap = _Tap(reader)
     try:
-        res = run_slam(tap, cfg, args.backend, args.sensors, progress)
+        res = run_slam(tap, cfg, args.backend, args.sensors, progress, association=args.association)
     finally:
         bar.close()
     extra, notes = _input_notes(reader, tap, [res])
@@ -401,7 +401,7 @@ def _print_summary(rep: dict, out: str) -> None:
 
 
 def _cmd_compare(args: argparse.Namespace) -> int:
-    rows = _compare(args.log, args.out, args.config, _reader_options(args))
+    rows = _compare(args.log, args.out, args.config, _reader_options(args), args.association)
     print((Path(args.out) / "comparison.md").read_text(), end="")
     print(f"wrote {args.out}/comparison.json, comparison.md, comparison.png and one folder per run")
     partial = [f"{r['backend']}/{r['sensors']}" for r in rows if r.get("partial")]
@@ -415,7 +415,13 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     return 0 if rows else 1
 
 
-def _compare(log: str, out: str, config: str | None, options: dict | None = None) -> list:
+def _compare(
+    log: str,
+    out: str,
+    config: str | None,
+    options: dict | None = None,
+    association: str = "jcbb",
+) -> list:
     from tqdm import tqdm
 
     from fgslam.slam.compare import compare
@@ -428,7 +434,14 @@ def _compare(log: str, out: str, config: str | None, options: dict | None = None
         disable=None,
         leave=False,
     ) as bar:
-        return compare(log, out, config, on_done=lambda _res: bar.update(1), options=options)
+        return compare(
+            log,
+            out,
+            config,
+            on_done=lambda _res: bar.update(1),
+            options=options,
+            association=association,
+        )
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -735,6 +748,12 @@ def build_parser() -> argparse.ArgumentParser:
         default="fused",
         help="laser and sonar fused (the paper), laser only, or sonar only (default fused)",
     )
+    p.add_argument(
+        "--association",
+        choices=["jcbb", "nn"],
+        default="jcbb",
+        help="data association: joint compatibility (JCBB) or nearest neighbour (default jcbb)",
+    )
     p.add_argument("--config", metavar="ROBOT.toml", help=CONFIG_OVER_LOG_HELP)
     p.add_argument(
         "--tolerant", action="store_true", help="skip malformed records instead of stopping"
@@ -810,6 +829,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("log", help="log: fgslam, CARMEN (.gz or not) or a ROS 1/2 bag")
     _add_reader_arguments(p)
     p.add_argument("--config", metavar="ROBOT.toml", help=CONFIG_OVER_LOG_HELP)
+    p.add_argument(
+        "--association",
+        choices=["jcbb", "nn"],
+        default="jcbb",
+        help="data association: joint compatibility (JCBB) or nearest neighbour (default jcbb)",
+    )
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")
     p.set_defaults(func=_cmd_compare)
 

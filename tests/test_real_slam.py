@@ -76,7 +76,10 @@ def test_point_slam_exact_data(backend):
         assert np.abs(r.poses[:, :2] - truth[:, :2]).max() < 1e-3
         if assoc == "own":
             agree = association_agreement(r.assigned)
-            assert agree["purity"] == 1.0 and agree["unassigned"] == 0.0
+            # one sighting is left out: tree 1000 is seen at the first pose only, then not
+            # again within the tentative window (lap 2 confirms it as a fresh candidate)
+            assert agree["purity"] == 1.0 and agree["split"] == 1.0
+            assert agree["unassigned"] * len(r.assigned) <= 1
             assert agree["own_landmarks"] == agree["given_landmarks"] == len(r.landmarks)
 
 

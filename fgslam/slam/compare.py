@@ -40,6 +40,7 @@ def _run_mode(
     backends: list[str],
     options: dict[str, Any] | None,
     keep_scans: bool,
+    association: str = "jcbb",
 ) -> tuple[list[SlamResult], dict[str, Any]]:
     """The backends in one sensor mode; also what the log holds (event counts, a sample of
     its scans for the maps when ``keep_scans``)."""
@@ -54,7 +55,7 @@ def _run_mode(
                 sample.add(ev)
             yield ev
 
-    results = run_backends(events(), cfg, backends, sensors)
+    results = run_backends(events(), cfg, backends, sensors, association=association)
     problems = getattr(reader, "problems", None)
     summary = reader.summary() if isinstance(problems, list) else problems.summary()
     return results, {"events": dict(counts), "scans": sample.scans, "reader": summary}
@@ -69,11 +70,12 @@ def compare(
     workers: int | None = None,
     on_done: Callable[[SlamResult], None] | None = None,
     options: dict[str, Any] | None = None,
+    association: str = "jcbb",
 ) -> list[dict[str, Any]]:
     """Every backend in every sensor mode on ``log`` (any format :func:`open_log` reads, with
     reader ``options``; ``config`` overrides the log's configuration key by key); one process
-    per sensor mode (the front end runs once per mode and feeds all backends). Returns the
-    rows of the comparison."""
+    per sensor mode (the front end runs once per mode and feeds all backends);
+    ``association`` "jcbb" or "nn" for every run. Returns the rows of the comparison."""
     from fgslam.sim.world import BUILTIN_WORLDS, load_world
 
     out = Path(out)
@@ -87,7 +89,9 @@ def compare(
     info: dict[str, Any] = {}
     with ProcessPoolExecutor(max_workers=workers) as pool:
         futs = [
-            pool.submit(_run_mode, str(log), config, s, list(backends), options, i == 0)
+            pool.submit(
+                _run_mode, str(log), config, s, list(backends), options, i == 0, association
+            )
             for i, s in enumerate(sensors)
         ]
         for fut in futs:

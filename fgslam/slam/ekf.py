@@ -3,18 +3,22 @@ and point (x, y) landmarks in one state vector (world frame, m, rad).
 
 Prediction composes the preintegrated odometry of eq 4 (its covariance in the previous
 keyframe's axes); updates use the shared measurement models of ``factors``; new landmarks are
-appended with their cross-covariances; merged lines are tied by a perfect pseudo-measurement
-and the dropped one is marginalised out of the state.
+appended with their cross-covariances; merged landmarks (any kind) are tied by a perfect
+pseudo-measurement (the one line-flip rule, ``factors.line.line_difference``) and the dropped
+one is marginalised out of the state.
 """
 
 from __future__ import annotations
 
 import math
+from collections import Counter
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.stats import chi2
 
 from factors.geometry import wrap_angle
+from factors.line import line_difference
 from factors.odometry import Preintegrated
 from fgslam.frontend.features import Feature
 from fgslam.slam import models
@@ -22,10 +26,18 @@ from fgslam.slam.backend import Backend, Estimate
 
 
 class EkfBackend(Backend):
+    """The paper's EKF. Protection matching the graph's robust factors: an innovation outside
+    the chi-square gate ``gate_p`` (after the scan's earlier updates) is never applied
+    (counted as ``ekf_rejected``); where R is tiny (the merge pseudo-measurement) the update
+    is in Joseph form, which keeps P positive semi-definite for any gain."""
+
     name = "ekf"
 
-    def __init__(self) -> None:
+    def __init__(self, gate_p: float | None = 0.9999) -> None:
         super().__init__()
+        # None: no gate (the association is given and trusted, e.g. Victoria Park's file)
+        self.gate = {n: float(chi2.ppf(gate_p, n)) if gate_p else math.inf for n in (1, 2, 3)}
+        self.stats: Counter = Counter()
         self.x = np.zeros(3)
         self.P = np.zeros((3, 3))
         self.index: dict[int, tuple[int, str]] = {}  # landmark id -> (offset, kind)
@@ -68,16 +80,36 @@ class EkfBackend(Backend):
         }
 
     def _update(
-        self, e: NDArray[np.float64], H: NDArray[np.float64], R: NDArray[np.float64]
-    ) -> None:
-        """EKF update for residual e = prediction - measurement with Jacobian H (Joseph form
-        is replaced by the symmetric form plus symmetrisation, cheaper at this size)."""
+        self,
+        e: NDArray[np.float64],
+        H: NDArray[np.float64],
+        R: NDArray[np.float64],
+        gate: bool = False,
+        joseph: bool = False,
+    ) -> bool:
+        """EKF update for residual e = prediction - measurement with Jacobian H. With
+        ``joseph`` (where R is tiny: the merge pseudo-measurement) in Joseph form
+        P' = (I - KH) P (I - KH)^T + K R K^T, expanded so that it costs O(n^2 m):
+        P - K (PH^T)^T - PH^T K^T + K S K^T; else P - K S K^T (half the cost). With
+        ``gate``, an innovation outside the chi-square gate is not applied (returns False)."""
         P = self.P
         PHt = P @ H.T
         S = H @ PHt + R
+        if gate:
+            try:
+                d2 = float(e @ np.linalg.solve(S, e))
+            except np.linalg.LinAlgError:
+                d2 = math.inf
+            if not d2 <= self.gate[len(e)]:
+                self.stats["ekf_rejected"] += 1
+                return False
         K = np.linalg.solve(S, PHt.T).T
         self.x -= K @ e
-        self.P = P - K @ S @ K.T
+        if joseph:
+            KPHt = K @ PHt.T
+            self.P = P - KPHt - KPHt.T + K @ S @ K.T
+        else:
+            self.P = P - K @ (S @ K.T)
         self.P = 0.5 * (self.P + self.P.T)
         self.x[2] = wrap_angle(self.x[2])
         for o, kind in self.index.values():
@@ -85,6 +117,7 @@ class EkfBackend(Backend):
                 self.x[o] = wrap_angle(self.x[o])
             elif kind == "corner":
                 self.x[o + 2] = wrap_angle(self.x[o + 2])
+        return True
 
     def observe(self, lid: int, f: Feature) -> None:
         o, kind = self.index[lid]
@@ -93,7 +126,7 @@ class EkfBackend(Backend):
         H = np.zeros((len(e), self.x.size))
         H[:, :3] = Hx
         H[:, o : o + n] = Hl
-        self._update(e, H, f.cov)
+        self._update(e, H, f.cov, gate=True)
 
     def add_landmark(self, lid: int, f: Feature) -> None:
         kind = f.kind
@@ -117,21 +150,16 @@ class EkfBackend(Backend):
         od, _ = self.index[drop]
         n = models.DIM[kind]
         a, b = self.x[ok : ok + n], self.x[od : od + n]
-        e = a - b
-        sign = 1.0
-        if kind == "line" and abs(wrap_angle(a[0] - b[0])) > math.pi / 2:
-            e = np.array([wrap_angle(a[0] - b[0] - math.pi), a[1] + b[1]])
-            sign = -1.0
-        elif kind == "line":
-            e[0] = wrap_angle(e[0])
-        if kind == "corner":
-            e[2] = wrap_angle(e[2])
+        if kind == "line":
+            e, Hb = line_difference(a, b)
+        else:
+            e, Hb = a - b, -np.eye(n)
+            if kind == "corner":
+                e[2] = wrap_angle(e[2])
         H = np.zeros((n, self.x.size))
         H[:, ok : ok + n] = np.eye(n)
-        H[:, od : od + n] = -np.eye(n)
-        if sign < 0:
-            H[1, od + 1] = 1.0
-        self._update(e, H, np.eye(n) * 1e-10)
+        H[:, od : od + n] = Hb
+        self._update(e, H, np.eye(n) * 1e-10, joseph=True)
         keepmask = np.ones(self.x.size, dtype=bool)
         keepmask[od : od + n] = False
         self.x = self.x[keepmask]

@@ -21,7 +21,7 @@ from factors.corner import (
     corner_to_world,
 )
 from factors.geometry import wrap_angle
-from factors.line import line_factor, line_residual, line_to_world
+from factors.line import flips, line_factor, line_residual, line_to_world, normalize_line
 from factors.point import point_factor, point_residual, point_to_world
 from fgslam.frontend.features import Feature
 
@@ -55,7 +55,7 @@ def residuals(
     if kind == "line":
         aw, dw = lms[:, 0], lms[:, 1]
         e0 = np.remainder(aw - th - z[0] + math.pi, 2 * math.pi) - math.pi
-        flip = np.abs(e0) > 0.5 * math.pi  # the (alpha + pi, -d) form of the prediction
+        flip = flips(e0)  # the (alpha + pi, -d) form of the prediction
         e0 = np.where(flip, np.remainder(e0 + 2 * math.pi, 2 * math.pi) - math.pi, e0)
         d = dw - x * np.cos(aw) - y * np.sin(aw)
         return np.column_stack([e0, np.where(flip, -d, d) - z[1]])
@@ -81,16 +81,49 @@ def to_world(
     return point_to_world(pose, z)
 
 
-def factor(kind: str, pose_key: int, lm_key: int, f: Feature) -> gtsam.NonlinearFactor:
-    """The GTSAM factor of a feature measured from pose ``pose_key`` of landmark ``lm_key``."""
-    noise = gtsam.noiseModel.Gaussian.Covariance(f.cov)
+ROBUST_KERNELS = ("none", "huber", "cauchy", "dcs")
+
+
+def m_estimator(kernel: str, dim: int) -> gtsam.noiseModel.mEstimator.Base | None:
+    """The M-estimator of a robust noise model for ``dim``-dimensional residuals (None for
+    "none"). GTSAM weighs by the norm of the whitened residual, which is chi-distributed
+    with ``dim`` dof for a correct association: the threshold k is its 95 % quantile,
+    sqrt(chi2_95(dim)), so correct sightings keep (nearly) full weight."""
+    if kernel == "none":
+        return None
+    k = math.sqrt(CHI2_95[dim])
+    if kernel == "huber":
+        return gtsam.noiseModel.mEstimator.Huber.Create(k)
+    if kernel == "cauchy":
+        return gtsam.noiseModel.mEstimator.Cauchy.Create(k)
+    if kernel == "dcs":
+        return gtsam.noiseModel.mEstimator.DCS.Create(k * k)
+    raise ValueError(f"unknown robust kernel {kernel!r}; expected one of {ROBUST_KERNELS}")
+
+
+CHI2_95 = {1: 3.841, 2: 5.991, 3: 7.815}
+
+
+def noise_model(cov: NDArray[np.float64], kernel: str = "none") -> gtsam.noiseModel.Base:
+    """Gaussian noise of covariance ``cov``, robust with ``kernel`` (see :func:`m_estimator`)."""
+    noise = gtsam.noiseModel.Gaussian.Covariance(np.asarray(cov, dtype=float))
+    est = m_estimator(kernel, len(cov))
+    return noise if est is None else gtsam.noiseModel.Robust.Create(est, noise)
+
+
+def factor(
+    kind: str, pose_key: int, lm_key: int, f: Feature, robust: str = "none"
+) -> gtsam.NonlinearFactor:
+    """The GTSAM factor of a feature measured from pose ``pose_key`` of landmark ``lm_key``,
+    its noise robust with the kernel ``robust`` (:func:`m_estimator`)."""
+    if kind == "point":
+        return point_factor(pose_key, lm_key, f.z, f.cov, robust=m_estimator(robust, 2))
+    noise = noise_model(f.cov, robust)
     if kind == "line":
         return line_factor(pose_key, lm_key, f.z, noise)
-    if kind == "corner":
-        if len(f.z) == 2:
-            return corner_bearing_range_factor(pose_key, lm_key, f.z, noise)
-        return corner_factor(pose_key, lm_key, f.z, noise)
-    return point_factor(pose_key, lm_key, f.z, f.cov)
+    if len(f.z) == 2:
+        return corner_bearing_range_factor(pose_key, lm_key, f.z, noise)
+    return corner_factor(pose_key, lm_key, f.z, noise)
 
 
 def value(kind: str, lm: NDArray[np.float64]) -> object:
@@ -111,9 +144,7 @@ def normalize(kind: str, lm: NDArray[np.float64]) -> NDArray[np.float64]:
     """Canonical world parameters (line d >= 0, angles wrapped)."""
     lm = np.array(lm, dtype=float)
     if kind == "line":
-        if lm[1] < 0:
-            lm = np.array([lm[0] + math.pi, -lm[1]])
-        lm[0] = wrap_angle(lm[0])
+        lm = np.array(normalize_line(float(lm[0]), float(lm[1])))
     elif kind == "corner":
         lm[2] = wrap_angle(lm[2])
     return lm

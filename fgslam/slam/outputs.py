@@ -25,7 +25,6 @@ from factors.geometry import wrap_angle
 from fgslam import evaluation, safeio
 from fgslam.config import RobotConfig
 from fgslam.events import Event, LaserScan
-from fgslam.slam.mapping import line_endpoints
 from fgslam.slam.runner import SlamResult
 
 MAX_MAP_POINTS = 150_000  # laser points drawn in map.png at most
@@ -98,8 +97,8 @@ def map_dict(res: SlamResult) -> dict[str, Any]:
         d: dict[str, Any] = {"id": lid, "kind": lm.kind}
         if lm.kind == "line":
             d["alpha"], d["d"] = float(m[0]), float(m[1])
-            if lm.extent is not None:
-                d["endpoints"] = line_endpoints(m, lm.extent).round(4).tolist()
+            if lm.ends is not None:  # world points: no (alpha, d) flip can mirror them
+                d["endpoints"] = np.asarray(lm.ends).round(4).tolist()
         elif lm.kind == "corner":
             d["x"], d["y"], d["theta"] = (float(v) for v in m)
             d["convex"] = lm.convex
@@ -111,6 +110,7 @@ def map_dict(res: SlamResult) -> dict[str, Any]:
         d["covariance"] = None if cov is None else np.asarray(cov).tolist()
         d["observations"] = dict(lm.observations)
         d["sonar_readings"] = lm.sonar_readings
+        d["status"] = lm.status  # "confirmed", or "unreliable": in view, not seen for long
         out.append(d)
     return {"frame": "world (m, rad)", "landmarks": out}
 
@@ -230,8 +230,8 @@ def plot_map(
             continue
         m = res.means[lid]
         cov = res.landmark_covs.get(lid)
-        if lm.kind == "line" and lm.extent is not None:
-            e = line_endpoints(m, lm.extent)
+        if lm.kind == "line" and lm.ends is not None:
+            e = np.asarray(lm.ends)
             ax.plot(e[:, 0], e[:, 1], "-", color="tab:blue", lw=1.5)
         elif lm.kind in ("corner", "point"):
             ax.plot(
@@ -278,8 +278,8 @@ def _extent(res: SlamResult, points: np.ndarray | None) -> tuple[float, ...] | N
         m = res.means.get(lid)
         if m is None:
             continue
-        if lm.kind == "line" and lm.extent is not None:
-            marks.append(line_endpoints(m, lm.extent)[:, :2])
+        if lm.kind == "line" and lm.ends is not None:  # world points
+            marks.append(np.asarray(lm.ends, dtype=float).reshape(-1, 2))
         elif lm.kind in ("corner", "point"):
             marks.append(np.asarray(m[:2], dtype=float).reshape(1, 2))
     if marks:

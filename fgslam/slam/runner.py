@@ -16,7 +16,7 @@ import math
 import time
 from collections import Counter, deque
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -28,10 +28,13 @@ from fgslam.events import Event, OdometryEvent, TruthPose
 from fgslam.frontend.pipeline import FrontEnd
 from fgslam.ordering import REORDER_WINDOW, ReorderBuffer
 from fgslam.slam import models
+from fgslam.slam.association import METHODS
 from fgslam.slam.backend import Backend
 from fgslam.slam.ekf import EkfBackend
-from fgslam.slam.graph import GraphBackend
-from fgslam.slam.mapping import Landmark, MapManager, MapParams
+from fgslam.slam.graph import BackendError, GraphBackend
+from fgslam.slam.lifecycle import Landmark, Lifecycle
+from fgslam.slam.mapping import MapParams
+from fgslam.slam.step import SlamStep
 
 BACKENDS = ("ekf", "isam2", "batch")
 SENSORS = ("fused", "laser", "sonar")
@@ -75,42 +78,25 @@ class SlamResult:
         return len(self.truth) > 1
 
 
-class _Session:
-    """One backend with its own map manager, fed the shared keyframes."""
+class _Session(SlamStep):
+    """One backend with its own map, fed the shared keyframes; stops at a backend failure
+    (``failed``: keyframe, time and the backend's message)."""
 
     def __init__(self, backend: str, map_params: MapParams | None) -> None:
-        self.be = make_backend(backend)
-        self.mapper = MapManager(map_params)
-        self.stats: Counter = Counter()
-        self.latencies: list[float] = []
-        self.filtered: list[NDArray[np.float64]] = []
-        self.landmark_counts: list[int] = []
-        self.started = False
-        self.wall = 0.0
+        super().__init__(make_backend(backend), map_params)
+        self.failed: dict | None = None
 
-    def keyframe(self, sf, pre, pose0: NDArray[np.float64]) -> None:
-        t0 = time.perf_counter()
-        be, mapper = self.be, self.mapper
-        if not self.started:
-            be.start(sf.t, pose0, np.eye(3) * 1e-8)
-            self.started = True
-        else:
-            be.predict(sf.t, pre)
-        dec = mapper.associate(sf.t, sf.features, be.pose(), be.means(), be.estimate)
-        for keep, drop in dec.merge:
-            be.merge(keep, drop)
-        for lid, f in dec.observe:
-            be.observe(mapper.resolve(lid), f)
-        for lid, f in dec.new:
-            be.add_landmark(lid, f)
-        be.commit()
-        mapper.update_geometry(dec, be.pose(), be.means())
-        self.stats.update(dec.stats)
-        self.filtered.append(be.pose())
-        dt = time.perf_counter() - t0
-        self.landmark_counts.append(len(mapper.landmarks))
-        self.latencies.append(dt)
-        self.wall += dt
+    @property
+    def mapper(self) -> Lifecycle:
+        return self.map
+
+    def feed(self, sf, pre, pose0: NDArray[np.float64] | None) -> None:
+        if self.failed is not None:
+            return
+        try:
+            self.keyframe(sf.t, sf.features, pre, pose0)
+        except BackendError as exc:
+            self.failed = {"keyframe": self.k, "t": float(sf.t), "error": str(exc)}
 
 
 def run_slam(
@@ -120,9 +106,10 @@ def run_slam(
     sensors: str = "fused",
     progress: Callable[[float], None] | None = None,
     map_params: MapParams | None = None,
+    association: str | None = None,
 ) -> SlamResult:
     """Run SLAM with one backend over an event stream; see :func:`run_backends`."""
-    return run_backends(events, cfg, [backend], sensors, progress, map_params)[0]
+    return run_backends(events, cfg, [backend], sensors, progress, map_params, association)[0]
 
 
 class SlamPipeline:
@@ -135,6 +122,15 @@ class SlamPipeline:
     :meth:`landmark_counts`, :attr:`last_latency` and :attr:`keyframes` describe the current
     state; :meth:`finish` processes what is still waiting and returns one
     :class:`SlamResult` per backend, in the order of ``backends``.
+
+    ``association`` ("jcbb" default, or "nn") overrides ``map_params.association``.
+
+    A backend failure (:class:`fgslam.slam.graph.BackendError`, e.g. an indeterminate
+    system) during a keyframe stops feeding that backend only; the others go on. Its
+    :class:`SlamResult` from :meth:`finish` then holds the estimate up to the last good
+    keyframe, with ``result.stats["partial"] = {"keyframe": k, "t": t, "error": message}``
+    (a JSON-serialisable dict; k the failed keyframe's index, t its time in s, the message
+    naming the variable GTSAM reported).
 
     ``wall_time`` of the results: with ``count_idle`` (running over a log) the time since
     the pipeline was created, reading included; without (online, where the pipeline waits
@@ -151,6 +147,7 @@ class SlamPipeline:
         progress: Callable[[float], None] | None = None,
         reorder_window: float = REORDER_WINDOW,
         count_idle: bool = True,
+        association: str | None = None,
     ) -> None:
         if sensors not in SENSORS:
             raise ValueError(f"unknown sensor mode {sensors!r}; expected one of {SENSORS}")
@@ -164,6 +161,10 @@ class SlamPipeline:
         self.sensors = sensors
         self.progress = progress
         self.count_idle = count_idle
+        if association is not None:
+            if association not in METHODS:
+                raise ValueError(f"unknown association {association!r}; expected one of {METHODS}")
+            map_params = replace(map_params or MapParams(), association=association)
         self.sessions: dict[str, _Session] = {}
         map_params = map_params or config_map_params(cfg)  # sensor-derived thresholds
         for b in backends:
@@ -255,7 +256,7 @@ class SlamPipeline:
         elif lr:
             self._odo_pose = integrate_poses(lr, ll, o.wheelbase, self._odo_pose)[-1]
         for sess in self.sessions.values():
-            sess.keyframe(sf, pre, self._odo_pose if first else None)
+            sess.feed(sf, pre, self._odo_pose if first else None)
         self.stats.update({f"frontend_{k}": v for k, v in sf.stats.items()})
         self.kf_times.append(sf.t)
         self._kf_odo.append(self._odo_pose.copy())
@@ -286,9 +287,7 @@ class SlamPipeline:
 
     def landmark_counts(self, backend: str | None = None) -> dict[str, int]:
         """Landmarks in the map by kind (line, corner, point), merged ones left out."""
-        counts = Counter(
-            lm.kind for lm in self._session(backend).mapper.landmarks.values() if lm.active
-        )
+        counts = Counter(lm.kind for lm in self._session(backend).landmarks.values() if lm.active)
         return dict(counts)
 
     def last_latency(self, backend: str | None = None) -> float | None:
@@ -380,6 +379,7 @@ def run_backends(
     sensors: str = "fused",
     progress: Callable[[float], None] | None = None,
     map_params: MapParams | None = None,
+    association: str | None = None,
 ) -> list[SlamResult]:
     """Run several backends on one pass of the front end over an event stream (in time order
     up to a :class:`ReorderBuffer` window of ``REORDER_WINDOW`` s; later events are dropped
@@ -387,8 +387,11 @@ def run_backends(
     Each backend has its own map manager, so associations follow its own estimates.
     ``batch`` shares the iSAM2 run's graph when both are asked for: it is that graph solved
     by Levenberg-Marquardt at the end. ``progress`` is called with each event's time.
-    Results come in the order of ``backends``. See :class:`SlamPipeline`."""
-    pipe = SlamPipeline(cfg, backends, sensors, map_params, progress=progress)
+    Results come in the order of ``backends``. ``association``: "jcbb" (default) or "nn".
+    See :class:`SlamPipeline`."""
+    pipe = SlamPipeline(
+        cfg, backends, sensors, map_params, progress=progress, association=association
+    )
     for ev in events:
         pipe.add(ev)
     return pipe.finish()
@@ -411,6 +414,9 @@ def _result(
     finish = time.perf_counter() - t0
     st = Counter(stats)
     st.update(sess.stats)
+    st.update(getattr(sess.be, "stats", {}))  # e.g. the EKF's rejected innovations
+    if sess.failed is not None:  # after the updates: Counter cannot add a dict
+        st["partial"] = dict(sess.failed)
     if name == "batch":
         sess_wall = sess.wall + getattr(sess.be, "batch_seconds", 0.0)
     else:

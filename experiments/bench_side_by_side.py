@@ -1,0 +1,51 @@
+"""CPU cost of the corridor run, to compare two versions of the code side by side on a shared
+machine (process CPU time is far less sensitive to other jobs than wall time).
+
+Run: PYTHONPATH=<tree> python experiments/bench_side_by_side.py [--duration S] [--seed N]
+(once with PYTHONPATH at the previous commit's tree, once at this one, interleaved). Prints,
+for one pass of EKF and iSAM2 over the simulated corridor (fused): the process CPU seconds of
+the whole run (front end included), each backend's summed per-keyframe time (wall), its ATE,
+and the landmark count.
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from fgslam import evaluation
+from fgslam.config import load_config
+from fgslam.logfile import LogReader
+from fgslam.sim import simulate_to_log
+from fgslam.sim.world import load_world
+from fgslam.slam.runner import run_backends
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--duration", type=float, help="s of the run (default: the whole run)")
+    ap.add_argument("--seed", type=int, default=1)
+    args = ap.parse_args()
+    with tempfile.TemporaryDirectory() as d:
+        log = Path(d) / "run.log.gz"
+        simulate_to_log(load_world("corridor"), load_config(), log, args.seed, args.duration)
+        evs = list(LogReader(log))
+        cfg = LogReader(log).config
+    t0 = time.process_time()
+    res = run_backends(evs, cfg, ["ekf", "isam2"], "fused")
+    cpu = time.process_time() - t0
+    print(f"corridor seed {args.seed}, {res[0].log_duration:.0f} s of log: CPU {cpu:.1f} s")
+    for r in res:
+        ref = evaluation.interpolate_poses(r.truth_t, r.truth, r.times)
+        print(
+            f"  {r.backend}: per-keyframe time {np.sum(r.latencies):.1f} s, "
+            f"ATE {evaluation.ate(r.poses, ref)['rmse']:.4f} m, {len(r.landmarks)} landmarks"
+        )
+
+
+if __name__ == "__main__":
+    main()
