@@ -63,7 +63,7 @@ class AssociationParams:
     sonar_line_gap: float = 1.0  # a sonar plane's foot point within this of a map line
     # residuals beyond these (rad or m, per component) cannot pass any sensible gate
     pregate: tuple[float, float, float] = (0.35, 1.0, 0.6)
-    max_nodes: int = 5000  # branch-and-bound budget per scan (then: the best so far)
+    max_nodes: int = 1000  # branch-and-bound budget per scan (then: the best so far)
 
 
 @dataclass(frozen=True)
@@ -245,6 +245,22 @@ def _jcbb(
     AP = {(i, h.lid): h.A @ P for i in order for h in compat[i]}
     best: dict = {"n": 0, "d2": np.inf, "pairs": {}}
     nodes = [0]
+    # the common case first: the nearest-neighbour pairing, if mutually exclusive and jointly
+    # compatible, pairs every feature that has a candidate: no hypothesis pairs more
+    nn = {i: compat[i][0] for i in order}
+    lids = [h.lid for h in nn.values()]
+    if len(set(lids)) == len(lids):
+        state = (0.0, None, None, 0, [])
+        for i, h in nn.items():
+            state = _extend(state, {}, i, h, AP, features[i].cov, features)
+            if state is None or state[0] > chi2_gate(state[3], p.gate_p):
+                break
+        else:
+            for i, h in nn.items():
+                out.pairs[i], out.d2[i] = h.lid, h.d2
+            out.joint_d2 = float(state[0])
+            out.stats["jcbb_nearest_compatible"] += 1
+            return
 
     def shareable(i: int, lid: int, used: dict[int, list[int]]) -> bool:
         others = used.get(lid)
