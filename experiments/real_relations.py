@@ -1,0 +1,119 @@
+"""The relations benchmark (Kümmerle et al. 2009) on the shared laser logs (issue 13 section 5):
+laser-only SLAM with each backend, next to odometry alone, the reference (GMapping) poses and
+the published figures.
+
+Run: python experiments/real_relations.py [--logs intel mit-csail freiburg-079]
+       [--backends ekf isam2 batch] [--max-scans N]
+Reads ``../shared/data/<log>`` with fgslam.readers (corrected logs: odometry rebuilt, the
+corrected poses as reference; mit-csail: a raw log), runs the front end in "laser" mode and
+the backends (iSAM2 and batch share one graph; the EKF alone), and scores the keyframe poses
+with the log's own odometry records filling relation ends between keyframes
+(:func:`fgslam.dense.relations_error_chain`, the benchmark's method). A backend that fails is
+reported as failed, with what it did up to then. Prints one markdown row per run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+from fgslam import dense, evaluation
+from fgslam.events import LaserScan
+from fgslam.readers import open_log
+from fgslam.readers.carmen import odometry_chain
+from fgslam.slam.runner import run_backends
+
+DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+FILES = {
+    "intel": ("intel-corrected.log.gz", "intel-corrected.relations"),
+    "freiburg-079": ("freiburg-079-corrected.log.gz", "freiburg-079-corrected.relations"),
+    "mit-csail": ("mit-csail.clf", "mit-csail.relations"),
+}
+# published translational errors, m (shared/data/README.md)
+PUBLISHED = {
+    "intel": "graph 0.031, Cartographer 0.023, GMapping 0.070, scan matching 0.220",
+    "freiburg-079": "graph 0.056, Cartographer 0.045, GMapping 0.061, scan matching 0.258",
+    "mit-csail": "graph 0.004, Cartographer 0.032, GMapping 0.049, scan matching 0.106",
+}
+
+
+def limited(events, max_scans: int | None):
+    n = 0
+    for ev in events:
+        if isinstance(ev, LaserScan):
+            n += 1
+            if max_scans is not None and n > max_scans:
+                return
+        yield ev
+
+
+def score(chain, rel, t, poses) -> dict:
+    est, has = dense.estimate_at_scans(chain, t, poses)
+    return dense.relations_error_chain(rel, chain, est, has)
+
+
+def fmt(m: dict) -> str:
+    return (
+        f"{m['trans_mean']:.3f} ± {m['trans_std']:.3f} (max {m['trans_max']:.2f}) | "
+        f"{m['rot_mean_deg']:.2f} ± {m['rot_std_deg']:.2f} | {m['relations_used']}"
+    )
+
+
+def run(name: str, backends: list[str], max_scans: int | None) -> None:
+    log_file, rel_file = FILES[name]
+    path, rel = DATA / log_file, dense.read_relations(DATA / rel_file)
+    chain = odometry_chain(path)
+    reference = chain.scan_poses
+    groups = [[b] for b in backends if b == "ekf"] + [[b for b in backends if b != "ekf"]]
+    first = True
+    for group in [g for g in groups if g]:
+        reader = open_log(path)
+        t0 = time.perf_counter()
+        results = run_backends(limited(reader, max_scans), reader.config, group, "laser")
+        wall = time.perf_counter() - t0
+        for res in results:
+            if first:  # odometry alone and the reference, on the same keyframes
+                first = False
+                odo = score(chain, rel, res.times, res.odometry)
+                print(f"| {name} | odometry alone | {fmt(odo)} | | | |")
+                if np.isfinite(reference).all() and name != "mit-csail":
+                    ref = dense.relations_error_chain(
+                        rel, chain, reference, np.ones(len(reference), dtype=bool)
+                    )
+                    print(f"| {name} | reference (GMapping) poses | {fmt(ref)} | | | |")
+            m = score(chain, rel, res.times, res.poses)
+            ate = ""
+            if res.has_truth:
+                truth = evaluation.interpolate_poses(res.truth_t, res.truth, res.times)
+                ate = f"{evaluation.ate(res.poses, truth)['rmse']:.2f}"
+            note = ""
+            if "partial" in res.stats:
+                note = " (partial: " + str(res.stats["partial"]["error"])[:60] + ")"
+            print(
+                f"| {name} | {res.backend}{note} | {fmt(m)} | {ate} | {len(res.landmarks)} | "
+                f"{wall:.0f} |",
+                flush=True,
+            )
+    print(f"| {name} | published | {PUBLISHED[name]} | | | | | |", flush=True)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--logs", nargs="+", default=["intel", "mit-csail", "freiburg-079"])
+    ap.add_argument("--backends", nargs="+", default=["ekf", "isam2", "batch"])
+    ap.add_argument("--max-scans", type=int, default=None)
+    args = ap.parse_args()
+    print(
+        "| log | estimate | relations trans (m): mean ± std (max) | rot (deg) | relations used "
+        "| ATE vs reference (m) | landmarks | wall (s) |"
+    )
+    print("|---|---|---|---|---|---|---|---|")
+    for name in args.logs:
+        run(name, args.backends, args.max_scans)
+
+
+if __name__ == "__main__":
+    main()
