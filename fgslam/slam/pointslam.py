@@ -78,9 +78,11 @@ def run_points(
     map_params: MapParams | None = None,
     limit: int | None = None,
     odometry_scale: float = 1.0,
+    robust: str | None = None,
 ) -> PointSlamResult:
     """Run one backend over the steps (the first ``limit`` of them, if given), the odometry
-    covariances multiplied by ``odometry_scale``."""
+    covariances multiplied by ``odometry_scale``; ``robust``: the graph's kernel (default
+    :class:`GraphBackend`'s)."""
     if backend not in BACKENDS:
         raise ValueError(f"unknown backend {backend!r}; expected one of {BACKENDS}")
     if association not in ASSOCIATIONS:
@@ -88,7 +90,8 @@ def run_points(
     if backend == "ekf":  # a given association is trusted: the EKF's gate is for its own
         be: Backend = EkfBackend(gate_p=None if association == "given" else 0.9999)
     else:
-        be = GraphBackend(covariances=False)
+        kw = {} if robust is None else {"robust": robust}
+        be = GraphBackend(covariances=False, **kw)
     step = SlamStep(be, map_params or POINT_MAP_PARAMS)
     steps = data.steps[:limit] if limit is not None else data.steps
     index = [steps[0].i]
