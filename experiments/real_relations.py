@@ -19,9 +19,9 @@ import time
 from pathlib import Path
 
 import numpy as np
+from real_carmen import limited  # the same scan limit as the ATE experiment
 
 from fgslam import dense, evaluation
-from fgslam.events import LaserScan
 from fgslam.readers import open_log
 from fgslam.readers.carmen import odometry_chain
 from fgslam.slam.runner import run_backends
@@ -38,16 +38,6 @@ PUBLISHED = {
     "freiburg-079": "graph 0.056, Cartographer 0.045, GMapping 0.061, scan matching 0.258",
     "mit-csail": "graph 0.004, Cartographer 0.032, GMapping 0.049, scan matching 0.106",
 }
-
-
-def limited(events, max_scans: int | None):
-    n = 0
-    for ev in events:
-        if isinstance(ev, LaserScan):
-            n += 1
-            if max_scans is not None and n > max_scans:
-                return
-        yield ev
 
 
 def score(chain, rel, t, poses) -> dict:

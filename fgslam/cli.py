@@ -555,6 +555,15 @@ def _cmd_online(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_association_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--association",
+        choices=["jcbb", "nn"],
+        default="jcbb",
+        help="data association: joint compatibility (JCBB) or nearest neighbour (default jcbb)",
+    )
+
+
 def _add_reader_arguments(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("foreign logs (docs/readers.md)")
     g.add_argument(
@@ -748,12 +757,7 @@ def build_parser() -> argparse.ArgumentParser:
         default="fused",
         help="laser and sonar fused (the paper), laser only, or sonar only (default fused)",
     )
-    p.add_argument(
-        "--association",
-        choices=["jcbb", "nn"],
-        default="jcbb",
-        help="data association: joint compatibility (JCBB) or nearest neighbour (default jcbb)",
-    )
+    _add_association_argument(p)
     p.add_argument("--config", metavar="ROBOT.toml", help=CONFIG_OVER_LOG_HELP)
     p.add_argument(
         "--tolerant", action="store_true", help="skip malformed records instead of stopping"
@@ -829,12 +833,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("log", help="log: fgslam, CARMEN (.gz or not) or a ROS 1/2 bag")
     _add_reader_arguments(p)
     p.add_argument("--config", metavar="ROBOT.toml", help=CONFIG_OVER_LOG_HELP)
-    p.add_argument(
-        "--association",
-        choices=["jcbb", "nn"],
-        default="jcbb",
-        help="data association: joint compatibility (JCBB) or nearest neighbour (default jcbb)",
-    )
+    _add_association_argument(p)
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")
     p.set_defaults(func=_cmd_compare)
 
