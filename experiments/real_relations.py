@@ -22,6 +22,7 @@ import numpy as np
 from real_carmen import limited  # the same scan limit as the ATE experiment
 
 from fgslam import dense, evaluation
+from fgslam.config import with_scanmatch
 from fgslam.readers import open_log
 from fgslam.readers.carmen import odometry_chain
 from fgslam.slam.runner import run_backends
@@ -52,29 +53,39 @@ def fmt(m: dict) -> str:
     )
 
 
-def run(name: str, backends: list[str], max_scans: int | None) -> None:
+MODES = {  # the paper's pipeline (wheel odometry, every scan) and scan matching (issue 14)
+    "wheels": {"odometry": "wheels", "keyframes": "every-scan", "loop_closures": "off"},
+    "scan": {"odometry": "both", "keyframes": "motion", "loop_closures": "on"},
+    "scan-noloops": {"odometry": "both", "keyframes": "motion", "loop_closures": "off"},
+}
+
+
+def run(
+    name: str, backends: list[str], max_scans: int | None, mode: str = "scan", header: bool = True
+) -> None:
     log_file, rel_file = FILES[name]
     path, rel = DATA / log_file, dense.read_relations(DATA / rel_file)
     chain = odometry_chain(path)
     reference = chain.scan_poses
     groups = [[b] for b in backends if b == "ekf"] + [[b for b in backends if b != "ekf"]]
-    first = True
+    first = header
     for group in [g for g in groups if g]:
         reader = open_log(path)
+        cfg = with_scanmatch(reader.config, MODES[mode])
         t0 = time.perf_counter()
-        results = run_backends(limited(reader, max_scans), reader.config, group, "laser")
+        results = run_backends(limited(reader, max_scans), cfg, group, "laser")
         wall = time.perf_counter() - t0
         for res in results:
             if first:  # odometry alone and the reference, on the same keyframes
                 first = False
                 odo = score(chain, rel, res.times, res.odometry)
-                print(f"| {name} | odometry alone | {fmt(odo)} | | | |")
+                print(f"| {name} | odometry alone | {fmt(odo)} | | | | | |")
                 if np.isfinite(reference).all() and name != "mit-csail":
                     ref = dense.relations_error_chain(
                         rel, chain, reference, np.ones(len(reference), dtype=bool)
                     )
-                    print(f"| {name} | reference (GMapping) poses | {fmt(ref)} | | | |")
-            m = score(chain, rel, res.times, res.poses)
+                    print(f"| {name} | reference (GMapping) poses | {fmt(ref)} | | | | | |")
+            m = score(chain, rel, *res.every_scan)
             ate = ""
             if res.has_truth:
                 truth = evaluation.interpolate_poses(res.truth_t, res.truth, res.times)
@@ -82,12 +93,14 @@ def run(name: str, backends: list[str], max_scans: int | None) -> None:
             note = ""
             if "partial" in res.stats:
                 note = " (partial: " + str(res.stats["partial"]["error"])[:60] + ")"
+            loops = sum(c["accepted"] for c in res.loop_closures)
             print(
-                f"| {name} | {res.backend}{note} | {fmt(m)} | {ate} | {len(res.landmarks)} | "
-                f"{wall:.0f} |",
+                f"| {name} | {res.backend} ({mode}){note} | {fmt(m)} | {ate} | "
+                f"{len(res.landmarks)} | {len(res.times)} | {loops} | {wall:.0f} |",
                 flush=True,
             )
-    print(f"| {name} | published | {PUBLISHED[name]} | | | | | |", flush=True)
+    if header:
+        print(f"| {name} | published | {PUBLISHED[name]} | | | | | | | |", flush=True)
 
 
 def main() -> None:
@@ -95,14 +108,23 @@ def main() -> None:
     ap.add_argument("--logs", nargs="+", default=["intel", "mit-csail", "freiburg-079"])
     ap.add_argument("--backends", nargs="+", default=["ekf", "isam2", "batch"])
     ap.add_argument("--max-scans", type=int, default=None)
+    ap.add_argument(
+        "--modes",
+        nargs="+",
+        choices=list(MODES),
+        default=["wheels", "scan"],
+        help="wheels: the paper's pipeline (wheel odometry, every scan a keyframe, no loops); "
+        "scan: scan matching, keyframes by motion, loop closures",
+    )
     args = ap.parse_args()
     print(
         "| log | estimate | relations trans (m): mean ± std (max) | rot (deg) | relations used "
-        "| ATE vs reference (m) | landmarks | wall (s) |"
+        "| ATE vs reference (m) | landmarks | keyframes | loops | wall (s) |"
     )
-    print("|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for name in args.logs:
-        run(name, args.backends, args.max_scans)
+        for i, mode in enumerate(args.modes):
+            run(name, args.backends, args.max_scans, mode, header=i == 0)
 
 
 if __name__ == "__main__":

@@ -416,3 +416,50 @@ class OdometryIntegrator:
         self._P = np.zeros((3, 3))
         self._n = 0
         return out
+
+
+def relative_pose(delta: ArrayLike, covariance: ArrayLike) -> Preintegrated:
+    """A measured relative pose (e.g. a scan match) as a :class:`Preintegrated`: ``delta`` =
+    (x, y, theta) of keyframe 2 in keyframe 1's frame (m, rad), ``covariance`` in GTSAM's
+    between convention (tangent at ``delta``); ``covariance_start`` is rotated back into
+    keyframe 1's axes (the inverse of :func:`to_between_covariance`)."""
+    x, y, th = (float(v) for v in np.asarray(delta, dtype=float).reshape(3))
+    C = np.asarray(covariance, dtype=float).reshape(3, 3)
+    C = 0.5 * (C + C.T)
+    J = np.eye(3)
+    J[:2, :2] = rot(th)
+    P = J @ C @ J.T
+    return Preintegrated(gtsam.Pose2(x, y, wrap_angle(th)), C, 0.5 * (P + P.T), 0)
+
+
+def motion_mahalanobis(a: Preintegrated, b: Preintegrated) -> float:
+    """Squared Mahalanobis distance between two measurements of one relative motion (the
+    difference in the tangent at ``b``; both covariances there, to first order)."""
+    xi = b.delta.localCoordinates(a.delta)
+    S = a.covariance + b.covariance
+    return float(xi @ np.linalg.solve(S, xi))
+
+
+def fuse_motions(a: Preintegrated, b: Preintegrated) -> Preintegrated:
+    """The information-weighted fusion of two independent measurements of one relative
+    motion (e.g. wheel odometry and a scan match), linearised in the tangent at ``b``:
+    C = (Ca^-1 + Cb^-1)^-1, xi = C Ca^-1 (a - b), delta = b retracted by xi; the same as the
+    two between factors of the factor graph solved together, to first order."""
+    xi = b.delta.localCoordinates(a.delta)
+    Ia = np.linalg.inv(a.covariance)
+    C = np.linalg.inv(Ia + np.linalg.inv(b.covariance))
+    C = 0.5 * (C + C.T)
+    d = b.delta.retract(C @ Ia @ xi)
+    return relative_pose([d.x(), d.y(), d.theta()], C)
+
+
+def combine_motions(
+    wheels: Preintegrated, scan: Preintegrated, gate: float
+) -> tuple[Preintegrated, bool]:
+    """The one relative motion a filter predicts with from wheel odometry and a scan match:
+    their fusion (:func:`fuse_motions`) when their squared Mahalanobis distance is within
+    ``gate``, else the scan match alone (wheels slip; a scan match already passed its own
+    checks). Returns the motion and whether the two agreed."""
+    if motion_mahalanobis(wheels, scan) <= gate:
+        return fuse_motions(wheels, scan), True
+    return scan, False

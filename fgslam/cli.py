@@ -186,8 +186,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from fgslam.slam.outputs import write_outputs
     from fgslam.slam.runner import run_slam
 
+    from fgslam.config import with_scanmatch
+
     reader = open_log(args.log, **_reader_options(args))
-    cfg = _run_config(reader, args.config, args.log)
+    cfg = with_scanmatch(_run_config(reader, args.config, args.log), _scanmatch_options(args))
     d = reader.meta.get("duration")
     total = float(d) if isinstance(d, int | float) else None
     bar = _progress_bar(f"{args.backend}/{args.sensors}")
@@ -219,8 +221,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
     write_dense_trajectory(
         Path(args.out) / "trajectory_dense.tum",
-        res.times,
-        res.poses,
+        *res.every_scan,
         res.odometry_samples,
         cfg.odometry.wheelbase,
     )
@@ -401,7 +402,14 @@ def _print_summary(rep: dict, out: str) -> None:
 
 
 def _cmd_compare(args: argparse.Namespace) -> int:
-    rows = _compare(args.log, args.out, args.config, _reader_options(args), args.association)
+    rows = _compare(
+        args.log,
+        args.out,
+        args.config,
+        _reader_options(args),
+        args.association,
+        _scanmatch_options(args),
+    )
     print((Path(args.out) / "comparison.md").read_text(), end="")
     print(f"wrote {args.out}/comparison.json, comparison.md, comparison.png and one folder per run")
     partial = [f"{r['backend']}/{r['sensors']}" for r in rows if r.get("partial")]
@@ -421,6 +429,7 @@ def _compare(
     config: str | None,
     options: dict | None = None,
     association: str = "jcbb",
+    scanmatch: dict | None = None,
 ) -> list:
     from tqdm import tqdm
 
@@ -441,6 +450,7 @@ def _compare(
             on_done=lambda _res: bar.update(1),
             options=options,
             association=association,
+            scanmatch=scanmatch,
         )
 
 
@@ -527,10 +537,10 @@ def _cmd_emulate(args: argparse.Namespace) -> int:
 
 
 def _cmd_online(args: argparse.Namespace) -> int:
-    from fgslam.config import load_config
+    from fgslam.config import load_config, with_scanmatch
     from fgslam.online import StopSignal, device_summary, online_main
 
-    cfg = load_config(args.config)
+    cfg = with_scanmatch(load_config(args.config), _scanmatch_options(args))
     with StopSignal("stopping: processing what has arrived, writing outputs") as sig:
         run, rep = online_main(
             cfg,
@@ -562,6 +572,41 @@ def _add_association_argument(p: argparse.ArgumentParser) -> None:
         default="jcbb",
         help="data association: joint compatibility (JCBB) or nearest neighbour (default jcbb)",
     )
+    _add_scanmatch_arguments(p)
+
+
+def _add_scanmatch_arguments(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group(
+        "scan matching (beyond the paper; the defaults come from the configuration's "
+        "[scanmatch] section: both, motion, on)"
+    )
+    g.add_argument(
+        "--odometry",
+        choices=["wheels", "scan", "both"],
+        help="what links consecutive keyframes: wheel odometry (the paper), laser scan "
+        "matching, or both as two robust constraints",
+    )
+    g.add_argument(
+        "--keyframes",
+        choices=["motion", "every-scan"],
+        help="a keyframe after a set travel or turn (the scans between are carried by scan "
+        "matching), or every scan (the paper)",
+    )
+    g.add_argument(
+        "--loops",
+        choices=["on", "off"],
+        help="verified loop closures by scan matching (iSAM2 and batch; the EKF keeps no "
+        "past poses to close a loop on)",
+    )
+
+
+def _scanmatch_options(args: argparse.Namespace) -> dict:
+    """The command line's overrides of the configuration's [scanmatch] section."""
+    return {
+        "odometry": getattr(args, "odometry", None),
+        "keyframes": getattr(args, "keyframes", None),
+        "loop_closures": getattr(args, "loops", None),
+    }
 
 
 def _add_reader_arguments(p: argparse.ArgumentParser) -> None:
@@ -1008,6 +1053,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="S",
         help="give up if a device has not answered after S s (default 30)",
     )
+    _add_scanmatch_arguments(p)
     p.set_defaults(func=_cmd_online)
     return parser
 

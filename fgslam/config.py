@@ -184,6 +184,40 @@ class FrontendConfig:
 
 
 @dataclass(frozen=True)
+class ScanMatchConfig:
+    """Laser scan matching, keyframes and loop closures (DESIGN 5b; beyond the paper, which
+    links every scan to the next by wheel odometry alone).
+
+    - ``odometry``: what links consecutive keyframes: ``wheels`` (the paper), ``scan`` (the
+      scan match; wheels where it is rejected) or ``both`` (two robust between factors in
+      the graph; their fusion in the EKF);
+    - ``keyframes``: ``motion`` (a new keyframe after ``keyframe_distance`` m or
+      ``keyframe_angle_deg`` of turn, or when the scan no longer overlaps the keyframe's) or
+      ``every-scan`` (the paper);
+    - ``loop_closures``: ``on`` or ``off`` (graph backends; an EKF keeps no past poses);
+      candidates within ``loop_radius`` m and ``loop_min_travel`` m of path behind;
+    - ``match_resolution`` (m): the correlative search's finest grid, 0 derived from the
+      laser (:func:`match_params`).
+    """
+
+    odometry: str = "both"
+    keyframes: str = "motion"
+    keyframe_distance: float = 0.5
+    keyframe_angle_deg: float = 20.0
+    loop_closures: str = "on"
+    loop_radius: float = 4.0
+    loop_min_travel: float = 8.0
+    match_resolution: float = 0.0
+
+
+SCANMATCH_CHOICES = {
+    "odometry": ("wheels", "scan", "both"),
+    "keyframes": ("motion", "every-scan"),
+    "loop_closures": ("on", "off"),
+}
+
+
+@dataclass(frozen=True)
 class RobotInfo:
     name: str
 
@@ -197,6 +231,7 @@ class RobotConfig:
     laser: LaserConfig
     sonar: SonarConfig
     frontend: FrontendConfig = field(default_factory=FrontendConfig)
+    scanmatch: ScanMatchConfig = field(default_factory=ScanMatchConfig)
     source: str = field(default="<default>", compare=False)
 
     def to_dict(self) -> dict[str, Any]:
@@ -231,6 +266,52 @@ def frontend_thresholds(cfg: RobotConfig) -> dict[str, Any]:
     return out
 
 
+def with_scanmatch(cfg: RobotConfig, overrides: dict[str, Any] | None) -> RobotConfig:
+    """``cfg`` with keys of its ``[scanmatch]`` section replaced (None values ignored), checked
+    as a configuration file's would be (command-line options such as ``--odometry``)."""
+    given = {k: v for k, v in (overrides or {}).items() if v is not None}
+    if not given:
+        return cfg
+    data = cfg.to_dict()
+    data["scanmatch"].update(given)
+    return dataclasses.replace(from_dict(data, "command line"), source=cfg.source)
+
+
+def match_params(cfg: RobotConfig) -> Any:
+    """The scan matcher's parameters for this laser (:meth:`MatchParams.for_laser`)."""
+    from fgslam.scanmatch import MatchParams
+
+    las = cfg.laser
+    step = math.radians(las.fov_deg) / max(las.n_beams - 1, 1)
+    kw = {}
+    if cfg.scanmatch.match_resolution:
+        kw["resolution"] = cfg.scanmatch.match_resolution
+    return MatchParams.for_laser(las.sigma_range, step, las.max_range, **kw)
+
+
+def keyframe_params(cfg: RobotConfig) -> Any:
+    """The keyframe policy of ``cfg``'s ``[scanmatch]`` section."""
+    from fgslam.slam.keyframes import KeyframeParams
+
+    sm = cfg.scanmatch
+    return KeyframeParams(
+        policy=sm.keyframes,
+        odometry=sm.odometry,
+        distance=sm.keyframe_distance,
+        angle=math.radians(sm.keyframe_angle_deg),
+    )
+
+
+def loop_params(cfg: RobotConfig) -> Any:
+    """The loop-closure search of ``cfg``'s ``[scanmatch]`` section."""
+    from fgslam.slam.loops import LoopParams
+
+    sm = cfg.scanmatch
+    return LoopParams(
+        enabled=sm.loop_closures == "on", radius=sm.loop_radius, min_travel=sm.loop_min_travel
+    )
+
+
 def map_params(cfg: RobotConfig, base: Any = None) -> Any:
     """``base`` (default: :class:`fgslam.slam.mapping.MapParams`'s defaults) with the
     sensor-dependent thresholds of ``cfg`` (:func:`frontend_thresholds`)."""
@@ -242,6 +323,9 @@ def map_params(cfg: RobotConfig, base: Any = None) -> Any:
 
 # Fields that must be strictly positive; the rest of the numbers must be finite.
 _POSITIVE = {
+    "scanmatch.keyframe_distance",
+    "scanmatch.keyframe_angle_deg",
+    "scanmatch.loop_radius",
     "odometry.wheelbase",
     "odometry.wheel_radius_right",
     "odometry.wheel_radius_left",
@@ -264,6 +348,8 @@ _POSITIVE = {
     "sonar.arrays.sweep_period",
 }
 _NON_NEGATIVE = {
+    "scanmatch.match_resolution",
+    "scanmatch.loop_min_travel",
     "frontend.min_points",
     "frontend.outlier",
     "frontend.spread",
@@ -410,6 +496,13 @@ def from_dict(data: dict[str, Any], source: str = "<dict>") -> RobotConfig:
 
 
 def _check_consistency(cfg: RobotConfig, src: str) -> None:
+    for key, choices in SCANMATCH_CHOICES.items():
+        value = getattr(cfg.scanmatch, key)
+        if value not in choices:
+            raise ConfigError(
+                f"{src}: key 'scanmatch.{key}': expected one of {', '.join(choices)}, "
+                f"got {value!r}"
+            )
     if cfg.laser.delay_max < cfg.laser.delay_min:
         raise ConfigError(f"{src}: key 'laser.delay_max': expected >= laser.delay_min")
     for arr in cfg.sonar.arrays:

@@ -66,6 +66,10 @@ class ScanFeatures:
     t: float
     features: list[Feature]
     stats: Counter = field(default_factory=Counter)
+    # the scan's valid returns as points (N, 2) in the robot frame, m (None: no laser)
+    points: NDArray[np.float64] | None = field(default=None, repr=False)
+    # the wheel-odometry pose (x, y, theta) at ``t`` in the odometry frame, m, rad
+    odom: NDArray[np.float64] | None = field(default=None, repr=False)
 
     def count(self, kind: str) -> int:
         return sum(f.kind == kind for f in self.features)

@@ -221,7 +221,15 @@ class FrontEnd:
         feats = [self._to_robot(f) for f in feats]
         for k in ("line", "corner", "point"):
             stats[f"{k}s"] = sum(f.kind == k for f in feats)
-        return ScanFeatures(t, feats, stats)
+        points = None
+        if use_laser:
+            ok = np.isfinite(r) & (r <= self.cfg.laser.max_range)
+            c, s = math.cos(self.mount[2]), math.sin(self.mount[2])
+            xl, yl = r[ok] * np.cos(phi[ok]), r[ok] * np.sin(phi[ok])
+            points = np.column_stack(
+                [self.mount[0] + c * xl - s * yl, self.mount[1] + s * xl + c * yl]
+            )
+        return ScanFeatures(t, feats, stats, points, self.poses.at(t))
 
     # ------------------------------------------------------------------ sonar
 

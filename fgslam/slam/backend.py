@@ -31,8 +31,16 @@ class Backend(ABC):
     @abstractmethod
     def start(self, t: float, pose: NDArray[np.float64], cov: NDArray[np.float64]) -> None: ...
 
+    # whether :meth:`keyframe_poses`, :meth:`relative` and :meth:`add_loop` work (a filter
+    # keeps no past poses to close a loop on)
+    supports_loops = False
+
     @abstractmethod
-    def predict(self, t: float, pre: Preintegrated) -> None: ...
+    def predict(
+        self, t: float, pre: Preintegrated | None, scan: Preintegrated | None = None
+    ) -> None:
+        """A new keyframe at ``t``, reached by the wheel odometry ``pre`` and/or the scan
+        match ``scan`` (relative poses from the last keyframe; at least one given)."""
 
     @abstractmethod
     def pose(self) -> NDArray[np.float64]:
@@ -59,6 +67,19 @@ class Backend(ABC):
 
     @abstractmethod
     def landmark_covariances(self) -> dict[int, NDArray[np.float64]]: ...
+
+    def keyframe_poses(self) -> NDArray[np.float64]:
+        """Current estimates (x, y, theta) of the keyframes before the current one."""
+        raise NotImplementedError(f"{self.name} does not close loops")
+
+    def relative(self, j: int) -> tuple:
+        """The current pose in keyframe ``j``'s frame (``gtsam.Pose2``) and its covariance
+        (GTSAM's between convention)."""
+        raise NotImplementedError(f"{self.name} does not close loops")
+
+    def add_loop(self, j: int, m: Preintegrated) -> None:
+        """A verified relative pose from keyframe ``j`` to the current one."""
+        raise NotImplementedError(f"{self.name} does not close loops")
 
     def finish(self) -> list[tuple[float, NDArray[np.float64], NDArray[np.float64]]]:
         """The final trajectory estimate: (t, pose, covariance) per keyframe."""

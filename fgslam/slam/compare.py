@@ -18,7 +18,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from fgslam import evaluation, safeio
-from fgslam.config import RobotConfig, check_against_log, override_config
+from fgslam.config import RobotConfig, check_against_log, override_config, with_scanmatch
 from fgslam.readers import open_log
 from fgslam.slam.outputs import ScanSample, write_outputs
 from fgslam.slam.runner import BACKENDS, SENSORS, SlamResult, run_backends
@@ -26,11 +26,16 @@ from fgslam.slam.runner import BACKENDS, SENSORS, SlamResult, run_backends
 NEES_FLAG = 3.0  # a NEES mean beyond this factor of its dof (or below 1/factor) is flagged
 
 
-def _open(log: str, config: str | None, options: dict[str, Any] | None):
+def _open(
+    log: str,
+    config: str | None,
+    options: dict[str, Any] | None,
+    scanmatch: dict[str, Any] | None = None,
+):
     reader = open_log(log, **(options or {}))
     cfg = override_config(reader.config, config)
     check_against_log(cfg, reader.config, str(log))
-    return reader, cfg
+    return reader, with_scanmatch(cfg, scanmatch)
 
 
 def _run_mode(
@@ -41,10 +46,11 @@ def _run_mode(
     options: dict[str, Any] | None,
     keep_scans: bool,
     association: str = "jcbb",
+    scanmatch: dict[str, Any] | None = None,
 ) -> tuple[list[SlamResult], dict[str, Any]]:
     """The backends in one sensor mode; also what the log holds (event counts, a sample of
     its scans for the maps when ``keep_scans``)."""
-    reader, cfg = _open(log, config, options)
+    reader, cfg = _open(log, config, options, scanmatch)
     counts: Counter = Counter()
     sample = ScanSample()
 
@@ -71,16 +77,18 @@ def compare(
     on_done: Callable[[SlamResult], None] | None = None,
     options: dict[str, Any] | None = None,
     association: str = "jcbb",
+    scanmatch: dict[str, Any] | None = None,
 ) -> list[dict[str, Any]]:
     """Every backend in every sensor mode on ``log`` (any format :func:`open_log` reads, with
     reader ``options``; ``config`` overrides the log's configuration key by key); one process
     per sensor mode (the front end runs once per mode and feeds all backends);
-    ``association`` "jcbb" or "nn" for every run. Returns the rows of the comparison."""
+    ``association`` "jcbb" or "nn" for every run; ``scanmatch`` overrides keys of the
+    configuration's ``[scanmatch]`` section. Returns the rows of the comparison."""
     from fgslam.sim.world import BUILTIN_WORLDS, load_world
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    reader, cfg = _open(str(log), config, options)
+    reader, cfg = _open(str(log), config, options, scanmatch)
     true_map = reader.meta.get("true_map")
     world = load_world(reader.world) if getattr(reader, "world", None) in BUILTIN_WORLDS else None
     truth_kind = getattr(reader, "reference_kind", None) or "ground truth"
@@ -90,7 +98,15 @@ def compare(
     with ProcessPoolExecutor(max_workers=workers) as pool:
         futs = [
             pool.submit(
-                _run_mode, str(log), config, s, list(backends), options, i == 0, association
+                _run_mode,
+                str(log),
+                config,
+                s,
+                list(backends),
+                options,
+                i == 0,
+                association,
+                scanmatch,
             )
             for i, s in enumerate(sensors)
         ]

@@ -19,7 +19,7 @@ from scipy.stats import chi2
 
 from factors.geometry import wrap_angle
 from factors.line import line_difference
-from factors.odometry import Preintegrated
+from factors.odometry import Preintegrated, combine_motions
 from fgslam.frontend.features import Feature
 from fgslam.slam import models
 from fgslam.slam.backend import Backend, Estimate
@@ -32,6 +32,7 @@ class EkfBackend(Backend):
     is in Joseph form, which keeps P positive semi-definite for any gain."""
 
     name = "ekf"
+    supports_loops = False  # a filter keeps no past pose to close a loop on
 
     def __init__(self, gate_p: float | None = 0.9999) -> None:
         super().__init__()
@@ -47,7 +48,20 @@ class EkfBackend(Backend):
         self.P = np.array(cov, dtype=float)
         self._pending_t = t
 
-    def predict(self, t: float, pre: Preintegrated) -> None:
+    def predict(
+        self, t: float, pre: Preintegrated | None, scan: Preintegrated | None = None
+    ) -> None:
+        """Predict with the wheel odometry ``pre`` and/or the scan match ``scan``; with both,
+        their fusion (:func:`factors.odometry.combine_motions`: where they disagree beyond
+        the gate, the scan match, counted as ``motion_disagreements``)."""
+        if pre is None or scan is None:
+            pre = pre or scan
+            if pre is None:
+                raise ValueError("predict needs the wheel odometry, a scan match or both")
+        else:
+            pre, agreed = combine_motions(pre, scan, self.gate[3])
+            if not agreed:
+                self.stats["motion_disagreements"] += 1
         x, y, th = self.x[:3]
         dx, dy, dth = pre.delta.x(), pre.delta.y(), pre.delta.theta()
         c, s = math.cos(th), math.sin(th)

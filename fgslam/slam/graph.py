@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from factors.line import line_difference
-from factors.odometry import Preintegrated
+from factors.odometry import Preintegrated, fuse_motions
 from fgslam.errors import UserError
 from fgslam.frontend.features import Feature
 from fgslam.slam import models
@@ -96,6 +96,7 @@ class GraphBackend(Backend):
         refresh_every: int = 10,
         max_final_updates: int = 20,
         converge_tol: float = 1e-4,
+        loop_updates: int = 2,
     ) -> None:
         super().__init__()
         self.batch = False
@@ -105,6 +106,7 @@ class GraphBackend(Backend):
         self.refresh_every = refresh_every
         self.max_final_updates = max_final_updates
         self.converge_tol = converge_tol
+        self.loop_updates = loop_updates
         self.final_updates = 0
         self.final_threshold = final_threshold
         self.failed: str | None = None
@@ -124,6 +126,7 @@ class GraphBackend(Backend):
         self._est = gtsam.Values()
         self._means: dict[int, NDArray[np.float64]] = {}
         self._touched: set[int] = set()
+        self._loop_added = False
         self._prev = gtsam.Pose2()
         self.batch_seconds = 0.0
         self.batch_iterations = 0
@@ -144,16 +147,65 @@ class GraphBackend(Backend):
         self._pose_pred = np.array(pose, dtype=float)
         self._pending_t = t
 
-    def predict(self, t: float, pre: Preintegrated) -> None:
+    def predict(
+        self, t: float, pre: Preintegrated | None, scan: Preintegrated | None = None
+    ) -> None:
+        """A new pose linked to the last one by the wheel odometry ``pre`` and/or the scan
+        match ``scan``: one between factor each; with both, each carries the robust kernel
+        (they check each other, the landmarks arbitrate); one alone is Gaussian."""
         prev = self._prev = self.isam.calculateEstimatePose2(X(self.k))
         self.k += 1
         self.times.append(t)
-        pred = prev.compose(pre.delta)
-        self.new_graph.add(pre.factor(X(self.k - 1), X(self.k)))
+        motions = [m for m in (pre, scan) if m is not None]
+        if not motions:
+            raise ValueError("predict needs the wheel odometry, a scan match or both")
+        kernel = self.robust if len(motions) > 1 else "none"
+        for m in motions:
+            noise = models.noise_model(m.covariance, kernel)
+            self.new_graph.add(gtsam.BetweenFactorPose2(X(self.k - 1), X(self.k), m.delta, noise))
+        self._pre = motions[0] if len(motions) == 1 else fuse_motions(pre, scan)
+        pred = prev.compose(self._pre.delta)
         self.new_values.insert(X(self.k), pred)
         self._pose_pred = np.array([pred.x(), pred.y(), pred.theta()])
-        self._pre = pre
         self._pending_t = t
+
+    # ------------------------------------------------------------------ loop closures
+
+    supports_loops = True
+
+    def keyframe_poses(self) -> NDArray[np.float64]:
+        """(x, y, theta) of every keyframe before the current one, world: the cached estimate
+        (refreshed every ``refresh_every`` keyframes), the filtered poses after it."""
+        out = np.array([p for _, p, _ in self.trajectory], dtype=float).reshape(-1, 3)
+        for k in range(len(out)):
+            if not self._est.exists(X(k)):
+                break
+            p = self._est.atPose2(X(k))
+            out[k] = (p.x(), p.y(), p.theta())
+        return out
+
+    def relative(self, j: int) -> tuple[gtsam.Pose2, NDArray[np.float64]]:
+        """The current (predicted) pose in the frame of keyframe ``j`` and its covariance in
+        GTSAM's between convention (tangent at the relative pose): from the joint marginal of
+        X(j) and the last committed pose, propagated through the new keyframe's motion."""
+        kp = self.k - 1
+        A = self.isam.calculateEstimatePose2(X(j))
+        B = self.isam.calculateEstimatePose2(X(kp))
+        r = A.between(B)
+        d = self._pre.delta
+        if j == kp:
+            return d, self._pre.covariance.copy()
+        J = self.isam.jointMarginalCovariance([X(j), X(kp)]).fullMatrix()
+        Ad_d = d.inverse().AdjointMap()
+        M = np.hstack([-Ad_d @ r.inverse().AdjointMap(), Ad_d])
+        C = M @ J @ M.T + self._pre.covariance
+        return r.compose(d), 0.5 * (C + C.T)
+
+    def add_loop(self, j: int, m: Preintegrated) -> None:
+        """A verified loop closure: keyframe ``j`` to the current one, robust."""
+        noise = models.noise_model(m.covariance, self.robust)
+        self.new_graph.add(gtsam.BetweenFactorPose2(X(j), X(self.k), m.delta, noise))
+        self._loop_added = True
 
     def pose(self) -> NDArray[np.float64]:
         return self._pose_pred.copy()
@@ -253,7 +305,11 @@ class GraphBackend(Backend):
         self.new_values = gtsam.Values()
         # the whole estimate (for the candidate search) every few keyframes; in between, the
         # landmarks this keyframe touched; association re-solves its candidates exactly
-        if self.k % self.refresh_every == 0:
+        if self._loop_added:  # a loop moves much of the graph: relinearise, refresh all
+            for _ in range(self.loop_updates):
+                self.isam.update()
+        if self.k % self.refresh_every == 0 or self._loop_added:
+            self._loop_added = False
             self._est = self.isam.calculateEstimate()
             self._refresh_means()
         else:

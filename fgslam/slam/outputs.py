@@ -152,6 +152,7 @@ def report_dict(res: SlamResult, true_map: dict[str, Any] | None = None) -> dict
         "backend": res.backend,
         "sensors": res.sensors,
         "poses": len(res.times),
+        "scans_placed": len(res.every_scan[0]),
         "landmarks": kinds,
         "landmarks_total": sum(kinds.values()),
         "wall_time_s": round(res.wall_time, 3),
@@ -165,6 +166,13 @@ def report_dict(res: SlamResult, true_map: dict[str, Any] | None = None) -> dict
         },
         "statistics": dict(res.stats),
     }
+    if res.loop_closures:
+        acc = [c for c in res.loop_closures if c["accepted"]]
+        rep["loop_closures"] = {
+            "accepted": len(acc),
+            "rejected": len(res.loop_closures) - len(acc),
+            "attempts": res.loop_closures,
+        }
     if res.stats.get("partial"):
         rep["partial"] = dict(res.stats["partial"])
     if res.has_truth and len(res.times):
@@ -225,6 +233,7 @@ def plot_map(
         lw=1.2,
         label=f"{res.backend} estimate",
     )
+    _draw_loops(ax, res)
     for lid, lm in res.landmarks.items():
         if lid not in res.means:
             continue
@@ -267,6 +276,21 @@ def plot_map(
     with safeio.atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=120)
     plt.close(fig)
+
+
+def _draw_loops(ax, res: SlamResult) -> None:
+    """Loop closures between the keyframes' estimated poses: accepted solid, rejected dotted."""
+    n = len(res.poses)
+    for accepted, style, label in ((False, ":", "rejected"), (True, "-", "accepted")):
+        segs = [
+            (res.poses[c["from"], :2], res.poses[c["to"], :2])
+            for c in res.loop_closures
+            if c["accepted"] == accepted and c["from"] < n and c["to"] < n
+        ]
+        for a, b in segs:
+            ax.plot([a[0], b[0]], [a[1], b[1]], style, color="tab:pink", lw=0.8, alpha=0.8)
+        if segs:
+            ax.plot([], [], style, color="tab:pink", label=f"loop closures {label} ({len(segs)})")
 
 
 def _extent(res: SlamResult, points: np.ndarray | None) -> tuple[float, ...] | None:
@@ -360,7 +384,7 @@ def write_outputs(
         return rep
     points = None
     if scans and cfg is not None and len(res.times):
-        points = laser_points(scans, res.times, res.poses, cfg)
+        points = laser_points(scans, *res.every_scan, cfg)
     label = "reference path" if rep.get("truth_source") == "reference" else "true path"
     plot_map(res, out / "map.png", world=world, points=points, truth_label=label)
     return rep

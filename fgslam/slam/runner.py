@@ -1,7 +1,12 @@
-"""The SLAM pipeline: events -> front end -> map management -> backend, and its result.
+"""The SLAM pipeline: events -> front end -> scan odometry and keyframes -> map management ->
+backend, and its result.
 
-One keyframe per front-end output (a laser scan, after its 6 s sonar window), with the
-odometry samples between keyframes preintegrated. The first keyframe is anchored at the
+Each front-end output (a laser scan, after its 6 s sonar window) goes to the scan odometry
+(:mod:`fgslam.slam.keyframes`), which matches it against the last keyframe's scan and decides
+whether it is a keyframe (policy ``motion`` by default, ``every-scan`` the paper's); the
+odometry samples between keyframes are preintegrated, and a keyframe is linked to the last by
+the wheel odometry, the scan match or both (``odometry``). Scans between keyframes keep their
+pose relative to their keyframe, so the result has a pose at every scan. The first keyframe is anchored at the
 log's true pose when it has one (so errors and NEES need no alignment), else at the origin.
 
 :class:`SlamPipeline` takes events one at a time (``fgslam online`` feeds it as data arrives;
@@ -23,7 +28,10 @@ from numpy.typing import NDArray
 
 from factors.odometry import integrate_poses, preintegrate
 from fgslam.config import RobotConfig
+from fgslam.config import keyframe_params as config_keyframe_params
+from fgslam.config import loop_params as config_loop_params
 from fgslam.config import map_params as config_map_params
+from fgslam.config import match_params
 from fgslam.events import Event, OdometryEvent, TruthPose
 from fgslam.frontend.pipeline import FrontEnd
 from fgslam.ordering import REORDER_WINDOW, ReorderBuffer
@@ -32,7 +40,9 @@ from fgslam.slam.association import METHODS
 from fgslam.slam.backend import Backend
 from fgslam.slam.ekf import EkfBackend
 from fgslam.slam.graph import BackendError, GraphBackend
+from fgslam.slam.keyframes import KeyframeParams, ScanOdometry
 from fgslam.slam.lifecycle import Landmark, Lifecycle
+from fgslam.slam.loops import LoopCloser, LoopParams
 from fgslam.slam.mapping import MapParams
 from fgslam.slam.step import SlamStep
 
@@ -72,29 +82,43 @@ class SlamResult:
     landmark_counts: list[int] = field(default_factory=list)  # landmarks after each keyframe
     # every odometry sample (t, L_r, L_l) in m, for the trajectory between keyframes
     odometry_samples: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 3)))
+    # the pose at every scan (keyframes and the scans between them, placed with their scan
+    # odometry relative to their keyframe's final estimate), time order
+    scan_times: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
+    scan_poses: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 3)))
+    loop_closures: list[dict] = field(default_factory=list)  # every attempt (loops.Closure)
 
     @property
     def has_truth(self) -> bool:
         return len(self.truth) > 1
+
+    @property
+    def every_scan(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """(times, poses) at every scan: keyframes and the scans between them."""
+        if len(self.scan_times) >= len(self.times):
+            return self.scan_times, self.scan_poses
+        return self.times, self.poses
 
 
 class _Session(SlamStep):
     """One backend with its own map, fed the shared keyframes; stops at a backend failure
     (``failed``: keyframe, time and the backend's message)."""
 
-    def __init__(self, backend: str, map_params: MapParams | None) -> None:
-        super().__init__(make_backend(backend), map_params)
+    def __init__(
+        self, backend: str, map_params: MapParams | None, loops: LoopCloser | None = None
+    ) -> None:
+        super().__init__(make_backend(backend), map_params, loops)
         self.failed: dict | None = None
 
     @property
     def mapper(self) -> Lifecycle:
         return self.map
 
-    def feed(self, sf, pre, pose0: NDArray[np.float64] | None) -> None:
+    def feed(self, sf, pre, pose0: NDArray[np.float64] | None, scan=None) -> None:
         if self.failed is not None:
             return
         try:
-            self.keyframe(sf.t, sf.features, pre, pose0)
+            self.keyframe(sf.t, sf.features, pre, pose0, scan=scan, points=sf.points)
         except BackendError as exc:
             self.failed = {"keyframe": self.k, "t": float(sf.t), "error": str(exc)}
 
@@ -107,9 +131,13 @@ def run_slam(
     progress: Callable[[float], None] | None = None,
     map_params: MapParams | None = None,
     association: str | None = None,
+    keyframes: KeyframeParams | None = None,
+    loops: LoopParams | None = None,
 ) -> SlamResult:
     """Run SLAM with one backend over an event stream; see :func:`run_backends`."""
-    return run_backends(events, cfg, [backend], sensors, progress, map_params, association)[0]
+    return run_backends(
+        events, cfg, [backend], sensors, progress, map_params, association, keyframes, loops
+    )[0]
 
 
 class SlamPipeline:
@@ -124,6 +152,10 @@ class SlamPipeline:
     :class:`SlamResult` per backend, in the order of ``backends``.
 
     ``association`` ("jcbb" default, or "nn") overrides ``map_params.association``.
+
+    ``keyframes`` (default: from the configuration's ``[scanmatch]``) sets the keyframe
+    policy and which odometry links keyframes; ``loops`` the loop-closure search (graph
+    backends only). Sonar-only runs keep the paper's scheme: every step a keyframe, wheels.
 
     A backend failure (:class:`fgslam.slam.graph.BackendError`, e.g. an indeterminate
     system) during a keyframe stops feeding that backend only; the others go on. Its
@@ -148,6 +180,8 @@ class SlamPipeline:
         reorder_window: float = REORDER_WINDOW,
         count_idle: bool = True,
         association: str | None = None,
+        keyframes: KeyframeParams | None = None,
+        loops: LoopParams | None = None,
     ) -> None:
         if sensors not in SENSORS:
             raise ValueError(f"unknown sensor mode {sensors!r}; expected one of {SENSORS}")
@@ -167,11 +201,21 @@ class SlamPipeline:
             map_params = replace(map_params or MapParams(), association=association)
         self.sessions: dict[str, _Session] = {}
         map_params = map_params or config_map_params(cfg)  # sensor-derived thresholds
+        kp = keyframes or config_keyframe_params(cfg)
+        lp = loops or config_loop_params(cfg)
+        if sensors == "sonar":  # the paper's scheme: no laser to match
+            kp = replace(kp, policy="every-scan", odometry="wheels")
+            lp = replace(lp, enabled=False)
+        self.keyframe_params, self.loop_params = kp, lp
+        mp = match_params(cfg)
+        self.scan_odometry = ScanOdometry(kp, mp)
+        self._between: list[tuple[float, int, NDArray[np.float64]]] = []  # non-keyframes
         for b in backends:
             if b == "ekf":
                 self.sessions[b] = _Session("ekf", map_params)
             elif b in ("isam2", "batch") and "graph" not in self.sessions:
-                self.sessions["graph"] = _Session("isam2", map_params)
+                loop = LoopCloser(lp, mp) if lp.enabled else None
+                self.sessions["graph"] = _Session("isam2", map_params, loop)
         self.reorder = ReorderBuffer(reorder_window)
         self.frontend = FrontEnd(cfg, sensors)
         o = cfg.odometry
@@ -229,12 +273,26 @@ class SlamPipeline:
         out = self.frontend.add(ev)
         self._fe_wall += time.perf_counter() - t0
         for sf in out:
-            self._keyframe(sf)
+            self._scan(sf)
         if self.progress is not None:
             self.progress(ev.t)
         return len(out)
 
-    def _keyframe(self, sf) -> None:
+    def _scan(self, sf) -> None:
+        """One front-end output: a keyframe, or a scan carried by its keyframe."""
+        if sf.odom is None:
+            sf.odom = np.zeros(3)
+        step = self.scan_odometry.add(sf.points, sf.odom)
+        if not step.keyframe:
+            self._between.append((sf.t, len(self.kf_times) - 1, step.rel))
+            self.stats["scans_between_keyframes"] += 1
+            return
+        scan = step.scan if self.keyframe_params.odometry != "wheels" else None
+        self._keyframe(sf, scan)
+        sess = next(iter(self.sessions.values()))
+        self.scan_odometry.map_support(sess.map_support if len(sf.features) >= 3 else None)
+
+    def _keyframe(self, sf, scan=None) -> None:
         o = self.cfg.odometry
         samples = self._samples
         ts, lr, ll = [], [], []
@@ -255,8 +313,13 @@ class SlamPipeline:
             self._odo_pose = _truth_at(self.truth_t, self.truth, sf.t)
         elif lr:
             self._odo_pose = integrate_poses(lr, ll, o.wheelbase, self._odo_pose)[-1]
+        if not first:
+            self.stats["keyframes_scan_linked" if scan is not None else "keyframes_wheels_only"] += 1
+        wheels = pre
+        if scan is not None and self.keyframe_params.odometry == "scan":
+            wheels = None  # the scan match alone (wheels only where it was rejected)
         for sess in self.sessions.values():
-            sess.feed(sf, pre, self._odo_pose if first else None)
+            sess.feed(sf, wheels, self._odo_pose if first else None, scan)
         self.stats.update({f"frontend_{k}": v for k, v in sf.stats.items()})
         self.kf_times.append(sf.t)
         self._kf_odo.append(self._odo_pose.copy())
@@ -339,7 +402,8 @@ class SlamPipeline:
         out = self.frontend.finish()
         self._fe_wall += time.perf_counter() - t0
         for sf in out:
-            self._keyframe(sf)
+            self._scan(sf)
+        self.stats.update(self.scan_odometry.stats)
         now = time.perf_counter()
         total = now - self._t_start if self.count_idle else self._busy + now - t_busy
         # the shared work (reading, front end) is charged to every backend
@@ -353,6 +417,7 @@ class SlamPipeline:
             first_t=self.first_t,
             last_t=self.last_t,
             sensors=self.sensors,
+            between=self._between,
         )
         # (session, name) in the order to finish them: iSAM2's estimate before the batch solve
         order = [("ekf", "ekf"), ("graph", "isam2"), ("graph", "batch")]
@@ -380,6 +445,8 @@ def run_backends(
     progress: Callable[[float], None] | None = None,
     map_params: MapParams | None = None,
     association: str | None = None,
+    keyframes: KeyframeParams | None = None,
+    loops: LoopParams | None = None,
 ) -> list[SlamResult]:
     """Run several backends on one pass of the front end over an event stream (in time order
     up to a :class:`ReorderBuffer` window of ``REORDER_WINDOW`` s; later events are dropped
@@ -390,7 +457,14 @@ def run_backends(
     Results come in the order of ``backends``. ``association``: "jcbb" (default) or "nn".
     See :class:`SlamPipeline`."""
     pipe = SlamPipeline(
-        cfg, backends, sensors, map_params, progress=progress, association=association
+        cfg,
+        backends,
+        sensors,
+        map_params,
+        progress=progress,
+        association=association,
+        keyframes=keyframes,
+        loops=loops,
     )
     for ev in events:
         pipe.add(ev)
@@ -398,7 +472,19 @@ def run_backends(
 
 
 def _result(
-    sess, name, *, kf_odo, truth_t, truth, stats, shared, first_t, last_t, sensors, final=True
+    sess,
+    name,
+    *,
+    kf_odo,
+    truth_t,
+    truth,
+    stats,
+    shared,
+    first_t,
+    last_t,
+    sensors,
+    final=True,
+    between=(),
 ) -> SlamResult:
     """Finish one session's backend and package its result; ``shared`` (s) is the reading
     and front-end time that every backend of the pass is charged with. Not ``final``: the
@@ -415,17 +501,25 @@ def _result(
     st = Counter(stats)
     st.update(sess.stats)
     st.update(getattr(sess.be, "stats", {}))  # e.g. the EKF's rejected innovations
+    if sess.loops is not None:
+        st.update(sess.loops.stats)
     if sess.failed is not None:  # after the updates: Counter cannot add a dict
         st["partial"] = dict(sess.failed)
     if name == "batch":
         sess_wall = sess.wall + getattr(sess.be, "batch_seconds", 0.0)
     else:
         sess_wall = sess.wall
+    times = np.array([p[0] for p in traj])
+    poses = np.array([p[1] for p in traj]).reshape(-1, 3)
+    scan_t, scan_p = _scan_poses(times, poses, between)
     return SlamResult(
+        scan_times=scan_t,
+        scan_poses=scan_p,
+        loop_closures=[c.to_json() for c in sess.loops.closures] if sess.loops else [],
         backend=name,
         sensors=sensors,
-        times=np.array([p[0] for p in traj]),
-        poses=np.array([p[1] for p in traj]).reshape(-1, 3),
+        times=times,
+        poses=poses,
         covs=[p[2] for p in traj],
         filtered=np.array(sess.filtered).reshape(-1, 3),
         odometry=np.array(kf_odo).reshape(-1, 3),
@@ -441,6 +535,30 @@ def _result(
         batch_seconds=getattr(sess.be, "batch_seconds", 0.0) if name == "batch" else 0.0,
         landmark_counts=list(sess.landmark_counts),
     )
+
+
+def _scan_poses(times, poses, between) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Keyframe poses and the scans between them (their keyframe's pose composed with their
+    scan odometry), in time order."""
+    rows = [(t, k, rel) for t, k, rel in between if 0 <= k < len(poses)]
+    if not rows:
+        return times.copy(), poses.copy()
+    k = np.array([r[1] for r in rows])
+    rel = np.array([r[2] for r in rows])
+    base = poses[k]
+    c, s = np.cos(base[:, 2]), np.sin(base[:, 2])
+    th = base[:, 2] + rel[:, 2]
+    placed = np.column_stack(
+        [
+            base[:, 0] + c * rel[:, 0] - s * rel[:, 1],
+            base[:, 1] + s * rel[:, 0] + c * rel[:, 1],
+            np.arctan2(np.sin(th), np.cos(th)),
+        ]
+    )
+    t = np.concatenate([times, [r[0] for r in rows]])
+    p = np.vstack([poses, placed])
+    order = np.argsort(t, kind="stable")
+    return t[order], p[order]
 
 
 def _truth_at(

@@ -2,12 +2,14 @@
 event pipeline :class:`fgslam.slam.runner.SlamPipeline`, hence ``fgslam online``, and the
 point-landmark path :mod:`fgslam.slam.pointslam`).
 
-Per keyframe: predict (or start); apply the duplicate merges found after the last keyframe;
+Per keyframe: predict (or start; wheel odometry and/or a scan match); apply the duplicate merges found after the last keyframe;
 associate (:mod:`fgslam.slam.association`, with the backend's fresh estimate); merge the map
 lines a measurement covers; observe; fuse the unassociated features into tentative landmarks
 and add the ones confirmed now (:mod:`fgslam.slam.lifecycle`); commit; update the segment
 geometry (:mod:`fgslam.slam.geometry`, world coordinates) with the updated estimate; look for
-duplicates among the landmarks seen; count misses of landmarks predicted in view.
+duplicates among the landmarks seen; count misses of landmarks predicted in view. With a
+:class:`fgslam.slam.loops.LoopCloser` and a backend that keeps past poses, verified loop
+closures of the keyframe's scan enter before the commit.
 """
 
 from __future__ import annotations
@@ -18,12 +20,13 @@ from collections import Counter
 import numpy as np
 from numpy.typing import NDArray
 
-from factors.odometry import Preintegrated
+from factors.odometry import Preintegrated, relative_pose
 from fgslam.frontend.features import Feature
 from fgslam.slam import geometry
 from fgslam.slam.association import associate
 from fgslam.slam.backend import Backend
 from fgslam.slam.lifecycle import CONFIRMED, Lifecycle
+from fgslam.slam.loops import LoopCloser
 from fgslam.slam.mapping import MapParams
 
 
@@ -32,8 +35,15 @@ class SlamStep:
     ``latencies``, ``filtered`` (the pose estimate after each keyframe) and
     ``landmark_counts`` (active landmarks after each keyframe) grow by one per keyframe."""
 
-    def __init__(self, backend: Backend, params: MapParams | None = None) -> None:
+    def __init__(
+        self,
+        backend: Backend,
+        params: MapParams | None = None,
+        loops: LoopCloser | None = None,
+    ) -> None:
         self.be = backend
+        self.loops = loops if backend.supports_loops else None
+        self.map_support = 1.0  # fraction of the last keyframe's features on landmarks
         self.p = params or MapParams()
         self.assoc = self.p.association_params()
         self.map = Lifecycle(self.p)
@@ -59,10 +69,14 @@ class SlamStep:
         pre: Preintegrated | None,
         pose0: NDArray[np.float64] | None = None,
         given: list[int] | None = None,
+        scan: Preintegrated | None = None,
+        points: NDArray[np.float64] | None = None,
     ) -> list[int | None]:
         """Process one keyframe at time ``t`` (the first: ``pose0``, world; later: ``pre``, the
-        odometry since the last one). ``given``: the caller's landmark id per feature (data
-        association given, e.g. Victoria Park's file), skipping association and lifecycle.
+        odometry since the last one, and/or ``scan``, the scan match from the last keyframe).
+        ``given``: the caller's landmark id per feature (data association given, e.g.
+        Victoria Park's file), skipping association and lifecycle. ``points``: the keyframe's
+        laser scan (robot frame) for loop closures.
         Returns the landmark id each feature went to (None: not used). Raises the backend's
         error (e.g. :class:`fgslam.slam.graph.BackendError`) unchanged."""
         t0 = time.perf_counter()
@@ -73,7 +87,7 @@ class SlamStep:
             be.start(t, np.zeros(3) if pose0 is None else pose0, self._start_cov)
             self.started = True
         else:
-            be.predict(t, pre)
+            be.predict(t, pre, scan)
         for keep, drop in self._pending_merges:
             keep, drop = lc.resolve(keep), lc.resolve(drop)
             if keep != drop:
@@ -87,6 +101,11 @@ class SlamStep:
             where = self._keyframe_given(t, features, given)
         else:
             where = self._keyframe_own(t, features, pose)
+        if self.loops is not None:
+            self.loops.add_keyframe(self.k, points, pose)
+            if self.k > 0:
+                for c in self.loops.try_close(self.k, be, pose):
+                    be.add_loop(c.j, relative_pose(c.pose, c.cov))
         be.commit()
         means = be.means()
         pose = be.pose()
@@ -103,6 +122,7 @@ class SlamStep:
                 self._update_geometry(lid, f, pose, means.get(lid))
             else:  # tentative: geometry on its own estimate
                 self._update_geometry(lid, f, pose, lm.mean)
+        self.map_support = len(seen) / len(features) if features else 1.0
         if given is None:
             lc.expire(self.k)
             query = seen | {lc.resolve(i) for i in self._compatible}

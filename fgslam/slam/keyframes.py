@@ -1,0 +1,159 @@
+"""Scan odometry and the keyframe policy (DESIGN 5b; beyond the paper).
+
+Every laser scan is matched (:mod:`fgslam.scanmatch`) against the last keyframe's scan, the
+match started from the wheel odometry since the previous scan; that carries the pose forward
+between keyframes. A scan becomes a keyframe when the robot has moved ``distance`` or turned
+``angle`` since the last keyframe, when its overlap with the keyframe's scan falls below
+``min_overlap``, or when the last keyframe matched too few of its features to the map (the
+SLAM step reports that through :meth:`ScanOdometry.map_support`). With the policy
+``every-scan`` (the paper's) every scan is a keyframe. At a keyframe the match against the
+previous keyframe is the scan constraint between the two (relative pose and covariance, GTSAM's
+between convention), the wheel odometry the other.
+
+Frames: points in the robot frame (m); poses (x, y, theta) in m, rad; ``rel`` is the scan's
+pose in the frame of the last keyframe.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from factors.geometry import wrap_angle
+from factors.odometry import Preintegrated, relative_pose
+from fgslam.scanmatch import Match, MatchParams, Reference, match
+
+POLICIES = ("motion", "every-scan")
+ODOMETRY = ("wheels", "scan", "both")
+
+
+@dataclass(frozen=True)
+class KeyframeParams:
+    """Keyframe policy and scan odometry. ``policy``: "motion" or "every-scan";
+    ``odometry``: which relative-pose measurements link keyframes ("wheels", "scan", "both");
+    ``distance`` (m), ``angle`` (rad): motion since the last keyframe that makes a new one;
+    ``min_overlap``: a scan overlapping the keyframe's scan less than this is a keyframe;
+    ``min_map_support``: a keyframe whose features matched the map less than this fraction
+    makes the next scan a keyframe."""
+
+    policy: str = "motion"
+    odometry: str = "both"
+    distance: float = 0.5
+    angle: float = math.radians(20.0)
+    min_overlap: float = 0.6
+    min_map_support: float = 0.3
+
+    def __post_init__(self) -> None:
+        if self.policy not in POLICIES:
+            raise ValueError(f"unknown keyframe policy {self.policy!r}; expected one of {POLICIES}")
+        if self.odometry not in ODOMETRY:
+            raise ValueError(f"unknown odometry {self.odometry!r}; expected one of {ODOMETRY}")
+
+    @property
+    def matching(self) -> bool:
+        """Whether scans are matched at all."""
+        return self.odometry != "wheels" or self.policy == "motion"
+
+
+@dataclass
+class ScanStep:
+    """What :meth:`ScanOdometry.add` decided for one scan: ``keyframe``; ``rel`` the scan's
+    pose in the frame of the keyframe before it (for a keyframe: of the previous keyframe);
+    ``scan`` the scan constraint from the previous keyframe (keyframes only; None when the
+    match was rejected or there is none); ``match`` the raw match (None if not matched)."""
+
+    keyframe: bool
+    rel: NDArray[np.float64]
+    scan: Preintegrated | None = None
+    match: Match | None = None
+
+
+def _between(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Pose b in the frame of pose a."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    dx, dy = b[0] - a[0], b[1] - a[1]
+    return np.array([c * dx + s * dy, -s * dx + c * dy, wrap_angle(b[2] - a[2])])
+
+
+def _compose(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+    c, s = math.cos(a[2]), math.sin(a[2])
+    return np.array(
+        [a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], wrap_angle(a[2] + b[2])]
+    )
+
+
+class ScanOdometry:
+    """Feed scans in time order with :meth:`add` (robot-frame points and the wheel-odometry
+    pose at the scan's time); see the module doc. ``stats`` counts matches, rejections and
+    the reasons of keyframes."""
+
+    def __init__(self, params: KeyframeParams, match_params: MatchParams) -> None:
+        self.p = params
+        self.mp = match_params
+        self.stats: Counter = Counter()
+        self._ref: Reference | None = None
+        self._rel = np.zeros(3)  # the last scan's pose in the keyframe's frame
+        self._odom_prev: NDArray[np.float64] | None = None
+        self._low_support = False
+        self._started = False
+        self.keyframe_points: NDArray[np.float64] | None = None
+
+    def map_support(self, fraction: float | None) -> None:
+        """The fraction of the last keyframe's features associated with the map (None: too
+        few features to judge)."""
+        self._low_support = fraction is not None and fraction < self.p.min_map_support
+
+    def add(self, points: NDArray[np.float64] | None, odom: NDArray[np.float64]) -> ScanStep:
+        """One scan: its points (N, 2, robot frame; None or empty: no laser) and the wheel
+        odometry pose at its time (odometry frame)."""
+        odom = np.asarray(odom, dtype=float)
+        wheel = np.zeros(3) if self._odom_prev is None else _between(self._odom_prev, odom)
+        self._odom_prev = odom
+        first = not self._started
+        self._started = True
+        guess = _compose(self._rel, wheel)
+        m = None
+        usable = points is not None and len(points) > 0
+        if self.p.matching and usable and self._ref is not None:
+            m = match(self._ref, points, guess, self.mp)
+            self.stats["scan_matches"] += 1
+            if m.ok:
+                guess = np.asarray(m.pose, dtype=float)
+            else:
+                self.stats["scan_matches_rejected"] += 1
+                self.stats[f"scan_rejected_{m.reason.replace(' ', '_')}"] += 1
+        self._rel = guess
+        reason = self._keyframe_reason(first, m)
+        if reason is None:
+            return ScanStep(False, guess.copy(), None, m)
+        self.stats[f"keyframes_{reason}"] += 1
+        scan = None
+        if m is not None and m.ok:
+            scan = relative_pose(m.pose, m.cov)
+        self._ref = Reference.build(points, self.mp) if self.p.matching and usable else None
+        self.keyframe_points = points if usable else None
+        self._rel = np.zeros(3)
+        self._low_support = False
+        return ScanStep(True, guess.copy(), scan, m)
+
+    def _keyframe_reason(self, first: bool, m: Match | None) -> str | None:
+        p = self.p
+        if first:
+            return "first"
+        if p.policy == "every-scan":
+            return "every_scan"
+        if self._ref is None:
+            return "no_reference"
+        if self._low_support:
+            return "map_support"
+        if math.hypot(self._rel[0], self._rel[1]) >= p.distance:
+            return "distance"
+        if abs(self._rel[2]) >= p.angle:
+            return "angle"
+        if m is not None and (not m.ok or m.overlap < p.min_overlap):
+            return "overlap"
+        return None

@@ -1,0 +1,200 @@
+"""Loop closures by scan matching (DESIGN 5b; beyond the paper).
+
+At a keyframe, old keyframes whose estimated position lies within ``radius`` of the current
+one and that are at least ``min_travel`` of path behind are candidates (nearest first, at
+most ``max_candidates``). The current scan is matched against a local map of the candidate's
+scan and its ``neighbours`` keyframes either side (placed in the candidate's frame with their
+current estimates), searched around the backend's relative pose within a window sized by
+that pose's uncertainty (3 sigma, clamped). A closure is accepted only when it is verified:
+the match passes its own checks, its score and overlap reach the stricter loop thresholds,
+and it agrees with the backend's relative pose and covariance (chi-square gate ``gate_p`` on
+the difference; a similar-looking different place lies outside it). Accepted closures enter
+the graph as robust between factors. Every attempt is kept in :attr:`LoopCloser.closures`
+(report.json, map.png).
+
+Frames: scan points in the robot frame (m); poses (x, y, theta) in the world (m, rad).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections import Counter
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.stats import chi2
+
+from factors.odometry import relative_pose
+from fgslam.scanmatch import MatchParams, Reference, match
+
+
+@dataclass(frozen=True)
+class LoopParams:
+    """Loop-closure search (m, rad). ``every``: try at most every this many keyframes."""
+
+    enabled: bool = True
+    radius: float = 4.0
+    min_travel: float = 8.0
+    max_candidates: int = 2
+    neighbours: int = 2
+    every: int = 1
+    max_search_xy: float = 2.0
+    min_search_xy: float = 0.3
+    max_search_theta: float = math.radians(30.0)
+    min_search_theta: float = math.radians(5.0)
+    min_score: float = 0.5
+    min_overlap: float = 0.7
+    gate_p: float = 0.999
+
+
+@dataclass
+class Closure:
+    """One loop-closure attempt between keyframes ``j`` (old) and ``k`` (current): the
+    matched relative pose (x, y, theta of k in j's frame), its covariance (between
+    convention), and whether it was accepted (``reason``: why not)."""
+
+    j: int
+    k: int
+    pose: NDArray[np.float64] | None
+    cov: NDArray[np.float64] | None
+    accepted: bool
+    reason: str
+    score: float = 0.0
+    overlap: float = 0.0
+    mahalanobis2: float = math.nan
+
+    def to_json(self) -> dict:
+        return {
+            "from": self.j,
+            "to": self.k,
+            "accepted": self.accepted,
+            "reason": self.reason,
+            "pose": None if self.pose is None else [round(float(v), 5) for v in self.pose],
+            "score": round(self.score, 4),
+            "overlap": round(self.overlap, 4),
+            "mahalanobis2": None
+            if not math.isfinite(self.mahalanobis2)
+            else round(self.mahalanobis2, 3),
+        }
+
+
+def _place(pose: NDArray[np.float64], pts: NDArray[np.float64]) -> NDArray[np.float64]:
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    return np.column_stack(
+        [pose[0] + c * pts[:, 0] - s * pts[:, 1], pose[1] + s * pts[:, 0] + c * pts[:, 1]]
+    )
+
+
+def _in_frame(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Pose b in the frame of pose a."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    dx, dy = b[0] - a[0], b[1] - a[1]
+    th = math.atan2(math.sin(b[2] - a[2]), math.cos(b[2] - a[2]))
+    return np.array([c * dx + s * dy, -s * dx + c * dy, th])
+
+
+class LoopCloser:
+    """Keeps every keyframe's scan and proposes verified closures (module doc)."""
+
+    def __init__(self, params: LoopParams, match_params: MatchParams) -> None:
+        self.p = params
+        self.mp = match_params
+        self.scans: dict[int, NDArray[np.float64]] = {}
+        self.path: list[float] = []  # path length (m) at each keyframe, from its estimate
+        self._last_pos: NDArray[np.float64] | None = None
+        self.closures: list[Closure] = []
+        self.stats: Counter = Counter()
+        self._gate = float(chi2.ppf(params.gate_p, 3))
+
+    def add_keyframe(self, k: int, points: NDArray[np.float64] | None, pose) -> None:
+        """Keyframe ``k``'s scan (robot frame; None: no laser) and its predicted pose."""
+        pos = np.asarray(pose[:2], dtype=float)
+        step = 0.0 if self._last_pos is None else float(np.hypot(*(pos - self._last_pos)))
+        self._last_pos = pos
+        self.path.append((self.path[-1] if self.path else 0.0) + step)
+        if points is not None and len(points):
+            self.scans[k] = np.asarray(points, dtype=float)
+
+    def candidates(self, k: int, poses: NDArray[np.float64], pose) -> list[int]:
+        """Old keyframes near ``pose`` (world) with enough path in between, nearest first."""
+        p = self.p
+        n = min(len(poses), k)
+        if n == 0:
+            return []
+        far = np.nonzero(self.path[k] - np.asarray(self.path[:n]) >= p.min_travel)[0]
+        if far.size == 0:
+            return []
+        d = np.hypot(*(poses[far, :2] - np.asarray(pose[:2])).T)
+        near = far[d <= p.radius]
+        near = near[np.argsort(d[d <= p.radius])]
+        out: list[int] = []
+        for j in near.tolist():  # one candidate per place: skip neighbours of a chosen one
+            if j in self.scans and all(abs(j - o) > 2 * p.neighbours for o in out):
+                out.append(j)
+            if len(out) >= p.max_candidates:
+                break
+        return out
+
+    def local_map(self, j: int, poses: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Keyframe ``j``'s scan and its neighbours', in ``j``'s frame."""
+        parts = []
+        for i in range(j - self.p.neighbours, j + self.p.neighbours + 1):
+            if i in self.scans and i < len(poses):
+                parts.append(_place(_in_frame(poses[j], poses[i]), self.scans[i]))
+        return np.vstack(parts)
+
+    def try_close(self, k: int, backend, pose) -> list[Closure]:
+        """The closures of keyframe ``k`` (already added with :meth:`add_keyframe`) with the
+        backend's estimate; returns the accepted ones (all attempts go to ``closures``)."""
+        p = self.p
+        if not p.enabled or k not in self.scans or k % p.every:
+            return []
+        poses = backend.keyframe_poses()
+        out = []
+        for j in self.candidates(k, poses, pose):
+            c = self.verify(j, k, poses, *backend.relative(j))
+            self.closures.append(c)
+            self.stats["loop_closures_tried"] += 1
+            if c.accepted:
+                self.stats["loop_closures_accepted"] += 1
+                out.append(c)
+            else:
+                self.stats[f"loop_rejected_{c.reason.replace(' ', '_')}"] += 1
+        return out
+
+    def verify(self, j: int, k: int, poses, rel, rel_cov) -> Closure:
+        """Match keyframe ``k``'s scan against ``j``'s local map around the predicted relative
+        pose ``rel`` (``gtsam.Pose2``; covariance ``rel_cov``, between convention) and check
+        the result (module doc)."""
+        p = self.p
+        guess = np.array([rel.x(), rel.y(), rel.theta()])
+        sd = np.sqrt(np.clip(np.diag(rel_cov), 0.0, None))
+        mp = dataclasses.replace(
+            self.mp,
+            search_xy=float(np.clip(3.0 * max(sd[0], sd[1]), p.min_search_xy, p.max_search_xy)),
+            search_theta=float(np.clip(3.0 * sd[2], p.min_search_theta, p.max_search_theta)),
+        )
+        ref = Reference.build(self.local_map(j, poses), mp)
+        m = match(ref, self.scans[k], guess, mp)
+        c = Closure(j, k, np.asarray(m.pose, dtype=float), np.asarray(m.cov), False, "")
+        c.score, c.overlap = float(m.score), float(m.overlap)
+        if not m.ok:
+            c.reason = m.reason or "match rejected"
+            return c
+        if m.score < p.min_score or m.overlap < p.min_overlap:
+            c.reason = "weak match"
+            return c
+        meas = relative_pose(m.pose, m.cov)
+        xi = rel.localCoordinates(meas.delta)
+        S = np.asarray(rel_cov) + meas.covariance
+        try:
+            c.mahalanobis2 = float(xi @ np.linalg.solve(S, xi))
+        except np.linalg.LinAlgError:
+            c.mahalanobis2 = math.inf
+        if not c.mahalanobis2 <= self._gate:
+            c.reason = "inconsistent with the estimate"
+            return c
+        c.accepted = True
+        return c

@@ -1,0 +1,121 @@
+"""Relative-pose measurements besides wheel odometry (scan matches, loop closures): their
+covariance conventions, their fusion for the EKF, and the graph's relative-pose covariance,
+each against Monte Carlo or GTSAM's own solution."""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+import pytest
+
+from factors.odometry import (
+    combine_motions,
+    fuse_motions,
+    motion_mahalanobis,
+    relative_pose,
+)
+from fgslam.slam.graph import GraphBackend
+
+
+def _spd(rng, scale):
+    A = rng.standard_normal((3, 3)) * scale
+    return A @ A.T + np.eye(3) * scale**2 * 0.1
+
+
+def _sample(m, rng, n):
+    """Poses m.delta * exp(xi), xi ~ N(0, m.covariance) (GTSAM's between convention)."""
+    L = np.linalg.cholesky(m.covariance)
+    xi = rng.standard_normal((n, 3)) @ L.T
+    return [m.delta.retract(x) for x in xi]
+
+
+def test_relative_pose_start_covariance_by_monte_carlo():
+    rng = np.random.default_rng(1)
+    C = np.diag([0.02, 0.005, 0.01]) ** 2
+    C[0, 2] = C[2, 0] = 0.5 * 0.02 * 0.01
+    m = relative_pose([1.0, 0.4, 1.1], C)
+    poses = _sample(m, rng, 40000)
+    xy = np.array([[p.x(), p.y(), p.theta()] for p in poses])
+    emp = np.cov(xy.T)
+    # covariance_start: the same uncertainty in keyframe 1's axes
+    assert np.allclose(emp, m.covariance_start, rtol=0.05, atol=0.03 * np.abs(emp).max())
+    # and not the between-convention matrix (they differ by the rotation)
+    assert not np.allclose(emp, m.covariance, rtol=0.05, atol=0.03 * np.abs(emp).max())
+
+
+def test_fusion_equals_the_two_factor_graph():
+    """Two between factors solved by GTSAM (X0 fixed) give the fused mean and covariance."""
+    rng = np.random.default_rng(2)
+    for _ in range(5):
+        a = relative_pose([0.5, 0.05, 0.2], _spd(rng, 0.03))
+        b = relative_pose(
+            [0.5 + 0.02 * rng.standard_normal(), 0.05, 0.2 + 0.01 * rng.standard_normal()],
+            _spd(rng, 0.02),
+        )
+        f = fuse_motions(a, b)
+        g = gtsam.NonlinearFactorGraph()
+        g.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(), gtsam.noiseModel.Isotropic.Sigma(3, 1e-9)))
+        for m in (a, b):
+            g.add(m.factor(0, 1))
+        v = gtsam.Values()
+        v.insert(0, gtsam.Pose2())
+        v.insert(1, b.delta)
+        sol = gtsam.LevenbergMarquardtOptimizer(g, v).optimize()
+        x1 = sol.atPose2(1)
+        assert np.allclose(
+            [x1.x(), x1.y(), x1.theta()], [f.delta.x(), f.delta.y(), f.delta.theta()], atol=2e-4
+        )
+        cov = gtsam.Marginals(g, sol).marginalCovariance(1)
+        assert np.allclose(cov, f.covariance, rtol=0.02, atol=0.01 * np.abs(cov).max())
+
+
+def test_combine_takes_the_scan_when_they_disagree():
+    C = np.diag([0.01, 0.01, 0.005]) ** 2
+    wheels = relative_pose([0.5, 0.0, 0.0], C)
+    scan = relative_pose([0.8, 0.0, 0.3], C)  # 30 sigma apart: the wheels slipped
+    assert motion_mahalanobis(wheels, scan) > 100
+    m, agreed = combine_motions(wheels, scan, 7.8)
+    assert not agreed and m is scan
+    near = relative_pose([0.505, 0.0, 0.002], C)
+    m, agreed = combine_motions(wheels, near, 7.8)
+    assert agreed
+    assert 0.5 < m.delta.x() < 0.505  # between the two, halfway for equal covariances
+    assert np.allclose(m.covariance, C / 2, rtol=0.05)
+
+
+@pytest.mark.parametrize("j", [0, 1])
+def test_graph_relative_covariance_by_monte_carlo(j):
+    """GraphBackend.relative: the current (predicted) pose in keyframe j's frame and its
+    covariance, checked by sampling the joint marginal and the new odometry."""
+    rng = np.random.default_rng(3 + j)
+    be = GraphBackend()
+    be.start(0.0, np.array([1.0, -2.0, 0.7]), np.diag([0.01, 0.02, 0.01]) ** 2)
+    be.commit()
+    motions = [
+        relative_pose([1.0, 0.1, 0.3], np.diag([0.05, 0.02, 0.03]) ** 2),
+        relative_pose([0.8, -0.2, 0.6], np.diag([0.04, 0.03, 0.02]) ** 2),
+        relative_pose([0.5, 0.0, -0.4], np.diag([0.03, 0.02, 0.04]) ** 2),
+    ]
+    for i, m in enumerate(motions[:-1]):
+        be.predict(float(i + 1), m)
+        be.commit()
+    last = motions[-1]
+    be.predict(9.0, last)
+    r, C = be.relative(j)
+    kp = be.k - 1
+    from fgslam.slam.graph import X
+
+    A = be.isam.calculateEstimatePose2(X(j))
+    B = be.isam.calculateEstimatePose2(X(kp))
+    J = be.isam.jointMarginalCovariance([X(j), X(kp)]).fullMatrix()
+    n = 20000
+    xi = rng.multivariate_normal(np.zeros(6), J, n)
+    e = rng.multivariate_normal(np.zeros(3), last.covariance, n)
+    samples = np.empty((n, 3))
+    for s in range(n):
+        a, b = A.retract(xi[s, :3]), B.retract(xi[s, 3:])
+        rs = a.between(b).compose(last.delta.retract(e[s]))
+        samples[s] = r.localCoordinates(rs)
+    emp = np.cov(samples.T)
+    assert np.allclose(samples.mean(axis=0), 0.0, atol=4 * np.sqrt(np.diag(C) / n) + 1e-4)
+    assert np.allclose(emp, C, atol=0.06 * np.abs(C).max())
