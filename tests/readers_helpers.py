@@ -182,3 +182,37 @@ def write_bag(
                     range=9.0 if k == 3 else 1.5,
                 )
                 writer.write(cr, int(t * 1e9), ser(rng, "sensor_msgs/msg/Range"))
+
+
+def write_native(path, n: int = 30, stamp=None, t0: float = 0.0) -> None:
+    """A native fgslam log of ``n`` scan periods of 0.2 s from ``t0``, in time order: per
+    period four odometry records (3 ticks right, 2 left each), a sonar and a truth record
+    between them, then a 5-beam scan. ``stamp(kind, k, t)`` (kind ``odometry``, ``sonar``, ``truth``, ``laser``;
+    k counts that kind from 0) gives a record's stamp instead of ``t``; the first odometry
+    record is at ``t0`` itself (a clock may start at 0)."""
+    import dataclasses
+
+    from fgslam.config import load_config
+    from fgslam.events import LaserScan, OdometryEvent, SonarReading, TruthPose
+    from fgslam.logfile import LogWriter
+
+    cfg = load_config()
+    cfg = dataclasses.replace(cfg, laser=dataclasses.replace(cfg.laser, n_beams=5))
+    stamp = stamp or (lambda kind, k, t: t)
+    count = {"odometry": 0, "sonar": 0, "truth": 0, "laser": 0}
+
+    def at(kind: str, t: float) -> float:
+        k = count[kind]
+        count[kind] += 1
+        return float(stamp(kind, k, t))
+
+    with LogWriter(path, cfg, "synthetic") as w:
+        for p in range(n):
+            base = t0 + 0.2 * p
+            for j in range(4):
+                w.write(OdometryEvent(at("odometry", base + 0.05 * j), 3, 2))
+                if j == 1:
+                    w.write(SonarReading(at("sonar", base + 0.07), 0, 0.0, ()))
+                if j == 2:
+                    w.write(TruthPose(at("truth", base + 0.1), 0.01 * p, 0.0, 0.0))
+            w.write(LaserScan(at("laser", base + 0.15), np.full(5, 2.0)))
