@@ -353,9 +353,9 @@ def _input_notes(reader, tap: _Tap, results: list) -> tuple[dict, list[str]]:
             notes.append("note: ATE is against the log's reference trajectory, not ground truth")
     if problems is not None and not isinstance(problems, list):
         extra["reader"] = summary  # a foreign reader's own account
+        notes += [f"warning: {w}" for w in summary.get("warnings", [])]
     elif "timestamps" in summary:  # a native log's clock check (docs/readers.md)
         extra["reader"] = {"timestamps": summary["timestamps"]}
-        notes += [f"warning: {w}" for w in summary.get("warnings", [])]
     return extra, notes
 
 
