@@ -5,6 +5,7 @@ rules as CARMEN's (fgslam.readers.sanity; CARMEN's cases are in test_readers_san
 from __future__ import annotations
 
 import gzip
+import math
 import os
 import threading
 
@@ -226,4 +227,153 @@ def test_native_log_from_a_fifo_is_not_checked(tmp_path):
 def test_common_clock():
     assert common_clock({"/scan": [0.01, 0.02], "/odom": [0.0, 0.03]}) is None
     msg = common_clock({"/scan": [0.01, 0.02], "/odom": [1.7e9, 1.7e9], "/x": []})
-    assert msg.startswith("/scan and /odom stamps 1.7e+09 s apart against the record times")
+    assert msg.startswith("/scan and /odom 1.7e+09 s apart against the record times")
+
+
+# -- ROS bags ---------------------------------------------------------------------------------
+
+
+@pytest.fixture(params=["ros1", "ros2"])
+def ros1(request) -> bool:
+    return request.param == "ros1"
+
+
+def bag(tmp_path, ros1: bool, name: str = "b", **kw):
+    from readers_helpers import write_bag
+
+    path = tmp_path / (f"{name}.bag" if ros1 else name)
+    write_bag(path, ros1, **kw)
+    return path
+
+
+def test_bag_sound_clocks_use_the_header_stamps(tmp_path, ros1):
+    """Header stamps 0.01 s before the record times on every topic: header stamps used, no
+    defect, nothing dropped."""
+    path = bag(tmp_path, ros1, header=lambda topic, k, t: t - 0.01)
+    log = open_log(path)
+    ev = by_type(list(log))
+    rec = log.meta["timestamps"]
+    assert rec == {
+        "requested": "auto",
+        "defects": {},
+        "used": "header",
+        "sporadic_bad_stamps": {},
+    }
+    assert len(ev[LaserScan]) == 10 and ev[LaserScan][0].t == pytest.approx(1.09)
+
+
+def test_bag_unset_header_stamps_use_the_record_times(tmp_path, ros1):
+    """Header stamps all 0 (unset): named per topic, the record times used."""
+    log = open_log(bag(tmp_path, ros1, zero_stamps=True))
+    rec = log.meta["timestamps"]
+    assert rec["used"] == "bag"
+    assert rec["defects"]["header"][0] == "/scan stamped 0 (10 of 10, first at message 1)"
+    assert len(by_type(log)[LaserScan]) == 10
+
+
+def test_bag_quantised_header_stamps(tmp_path, ros1):
+    """Scan header stamps written in whole seconds (scans share them): the record times are
+    used, and the defect names the topic and the first message sharing its predecessor's
+    stamp."""
+    path = bag(tmp_path, ros1, header=lambda topic, k, t: math.floor(t) if topic == "/scan" else t)
+    log = open_log(path)
+    rec = log.meta["timestamps"]
+    assert rec["used"] == "bag"
+    assert rec["defects"]["header"][0].startswith(
+        "/scan stamps quantised (9 of 10 scans share a stamp, 2 distinct values; first at "
+        "message 2: 1)"
+    )
+    scans = by_type(log)[LaserScan]
+    assert [e.t for e in scans] == pytest.approx(1.0 + 0.1 * np.arange(1, 20, 2))
+
+
+def test_bag_negative_header_stamps_are_junk(tmp_path, ros1):
+    """Header stamps 2 s early on /odom, so that its first ten are negative (an int32
+    second overflowing, a clock offset gone wrong): junk (half of them), named with the
+    topic and the first message; the record times are used."""
+    early = lambda topic, k, t: t - 2.0 if topic == "/odom" else t
+    log = open_log(bag(tmp_path, ros1, header=early, with_range=False))
+    rec = log.meta["timestamps"]
+    assert rec["used"] == "bag"
+    assert rec["defects"]["header"] == ["/odom stamps junk (11 of 20 bad, first at message 1: -1)"]
+
+
+def test_bag_topics_on_different_header_clocks(tmp_path, ros1):
+    """/scan stamped in simulated time (from 1 s), /odom and /sonar in UNIX time: each
+    topic's header stamps look sound alone, but they are not one clock (every scan would
+    be 1.7e9 s "late" against the odometry and dropped); the record times are used."""
+    path = bag(
+        tmp_path,
+        ros1,
+        header=lambda topic, k, t: t if topic == "/scan" else UNIX + t,
+        record=lambda topic, k, t: UNIX + t,
+    )
+    log = open_log(path)
+    rec = log.meta["timestamps"]
+    assert rec["used"] == "bag"
+    (defect,) = rec["defects"]["header"]
+    assert defect.startswith("header stamps of /odom and /scan 1.7e+09 s apart against the record")
+    ev = by_type(list(log))
+    assert len(ev[LaserScan]) == 10 and not log.problems.backwards
+
+
+def test_bag_without_a_usable_clock_is_refused_naming_topic_and_defect(tmp_path, ros1, capsys):
+    """Header stamps unset and record times in whole seconds: a one-line error naming each
+    clock's first defect and its topic; --timestamps bag runs it as asked."""
+    path = bag(tmp_path, ros1, zero_stamps=True, record=lambda topic, k, t: float(math.floor(t)))
+    name = path.name
+    with pytest.raises(Exception) as err:
+        open_log(path)
+    msg = str(err.value)
+    assert msg.endswith(
+        f"{name}: no usable timestamps (header stamps: /scan stamped 0 (10 of 10, first at "
+        "message 1); record times: /scan stamps quantised (9 of 10 scans share a stamp, 2 "
+        "distinct values; first at message 2: 1)); choose with --timestamps header|bag"
+    )
+    out = tmp_path / "o.log"
+    assert main(["convert", str(path), "--out", str(out)]) == 2
+    err_text = capsys.readouterr().err
+    assert err_text.count("\n") == 1 and "no usable timestamps" in err_text
+    assert main(["convert", str(path), "--timestamps", "bag", "--out", str(out)]) == 0
+    log = open_log(path, timestamps="bag")
+    assert log.meta["timestamps"]["used"] == "bag" and log.meta["timestamps"]["requested"] == "bag"
+    with pytest.raises(Exception, match="unknown --timestamps 'index' for a bag"):
+        open_log(path, timestamps="index")
+
+
+def test_bag_header_stamps_going_back_beyond_the_tolerance(tmp_path, ros1):
+    """Every fourth odometry header stamp 5 s back (25 %): named with the topic and the
+    first message; the record times are used."""
+    back = lambda topic, k, t: UNIX + t - (5.0 if topic == "/odom" and k % 4 == 3 else 0.0)
+    path = bag(tmp_path, ros1, header=back, record=lambda topic, k, t: UNIX + t)
+    log = open_log(path)
+    rec = log.meta["timestamps"]
+    assert rec["used"] == "bag"
+    assert rec["defects"]["header"][0].startswith(
+        "/odom stamps backwards by more than 2 s (5 of 20 bad, first at message 4: 1.7e+09)"
+    )
+    assert len(by_type(log)[LaserScan]) == 10
+
+
+def test_bag_sporadic_bad_header_stamps_are_dropped_and_odometry_carried(tmp_path, ros1):
+    """In a bag of 60 scans, one odometry header stamp 0 and one scan 5 s back (under 2 % of
+    each topic): the header stamps stay in use; the scan is dropped, the odometry message's
+    motion carried into the next one (the same ticks as the clean bag), both counted."""
+
+    def header(topic, k, t):
+        if (topic, k) == ("/odom", 40):
+            return 0.0
+        if (topic, k) == ("/scan", 30):
+            return t - 5.0
+        return t
+
+    log = open_log(bag(tmp_path, ros1, n=60, header=header, with_range=False))
+    events = list(log)
+    clean = list(open_log(bag(tmp_path, ros1, name="c", n=60, with_range=False)))
+    assert ticks(events) == ticks(clean)
+    assert len(by_type(events)[LaserScan]) == 59
+    assert [e.t for e in events] == sorted(e.t for e in events)
+    rec = log.meta["timestamps"]
+    assert rec["used"] == "header"
+    assert rec["sporadic_bad_stamps"] == {"/scan": 1, "/odom": 1}
+    assert log.problems.backwards == {"/scan": 1, "/odom": 1}

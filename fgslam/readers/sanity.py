@@ -192,7 +192,7 @@ def common_clock(offsets: dict[str, Any], tolerance: float = BACKWARDS_TOLERANCE
     if gap <= tolerance:
         return None
     return (
-        f"{lo} and {hi} stamps {gap:.6g} s apart against the record times (not one clock; "
+        f"{lo} and {hi} {gap:.6g} s apart against the record times (not one clock; "
         f"median record time - stamp {finite[lo]:.6g} s and {finite[hi]:.6g} s)"
     )
 
