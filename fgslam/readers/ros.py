@@ -14,9 +14,14 @@
   its echoes nor measures their bearing: this mapping treats every echo as a plane seen at
   normal incidence, which is often wrong; use ``--sensors laser`` unless that holds.
 
-Times are the messages' header stamps, or the bag's record times when the first scan's header
-stamp is unset (0) or not a time (``timestamps``: ``auto``, ``header``, ``bag``; recorded in
-``meta["timestamps"]``). Odometry messages moving faster than the reader's
+Times are the messages' header stamps, or the bag's record times where the header stamps are
+unsound (``timestamps``: ``auto``, ``header``, ``bag``; recorded in ``meta["timestamps"]``):
+before reading, both clocks are checked per topic with the rules of
+:mod:`fgslam.readers.sanity` (stamped 0, wrapped, quantised scans, junk, backwards beyond
+``backwards_tolerance``), and the header stamps also for being one clock across the topics
+(:func:`~fgslam.readers.sanity.common_clock`); with neither sound, a one-line
+:class:`ReaderError` names each clock's first defect and its topic. Messages with sporadic
+bad stamps are handled as going backwards (below). Odometry messages moving faster than the reader's
 :class:`~fgslam.readers.sanity.OdometryLimits` are an error (strict) or skipped and counted
 (tolerant); gaps in the odometry while scans come are counted as holes. Topic names are
 chosen by option; left out, the only topic of the right type is taken. A bag without such a

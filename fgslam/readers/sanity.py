@@ -1,8 +1,10 @@
 """Sanity of foreign logs' clocks and odometry (docs/readers.md, "Timestamps and odometry").
 
-**Clocks.** :func:`stamp_defects` examines one stamp field (CARMEN: ``timestamp``, the
-``ipc`` clock, or ``logger_timestamp``) over the scans and over the odometry records, in file
-order, and names what makes it unusable:
+**Clocks.** :func:`stream_defects` examines one clock over the streams of a log, each in file
+order (CARMEN, :func:`stamp_defects`: the ``timestamp`` field, the ``ipc`` clock, or
+``logger_timestamp``, over the scans and the odometry records; native fgslam logs: the
+records' stamps over the laser, odometry, sonar and truth records; ROS bags: the header
+stamps or the record times, per topic), and names what makes it unusable:
 
 - ``stamped 0``: more than half of a stream's stamps are 0;
 - ``wrapped at 2^32``: a stamp drops by more than 2^31 s from a predecessor above 2^31 s;
@@ -14,11 +16,13 @@ order, and names what makes it unusable:
 
 Fewer junk or far-backward stamps than that are *sporadic*: counted (``bad_stamps``), and
 the reader treats those records as going backwards (a scan is dropped, an odometry record's
-motion is carried into the next sample). :func:`choose_clock` then takes the ``ipc`` field
-when it is sound, else the ``logger`` field when that is, else refuses with one line naming
-each field's first defect and its line; ``--timestamps index|ipc|logger`` forces a choice
-(``index``: scan k at ``k * INDEX_PERIOD`` s, the odometry records between two scans spread
-evenly between them).
+motion is carried into the next sample). :func:`choose_clock` then takes the first sound
+clock in the reader's order of preference (CARMEN: the ``ipc`` field, else the ``logger``
+field; ROS: header stamps, else record times; native: its one clock), else refuses with one
+line naming each clock's first defect and its line (message, topic); ``--timestamps`` forces
+a choice (``index``, CARMEN and native logs: scan k at ``k * INDEX_PERIOD`` s, the other
+records between two scans spread evenly between them). :func:`common_clock` tells whether
+several streams' stamps run on one clock, against a second clock (a bag's record times).
 
 **Odometry.** :func:`implausible` tells whether a pose increment over ``dt`` s exceeds a speed
 or turn-rate bound (with ``MIN_DT`` s of slack, so that stamps too close together are no
