@@ -355,6 +355,8 @@ def _input_notes(reader, tap: _Tap, results: list) -> tuple[dict, list[str]]:
     if problems is not None and not isinstance(problems, list):
         extra["reader"] = summary  # a foreign reader's own account
         notes += [f"warning: {w}" for w in summary.get("warnings", [])]
+    elif "timestamps" in summary:  # a native log's clock check (docs/readers.md)
+        extra["reader"] = {"timestamps": summary["timestamps"]}
     return extra, notes
 
 
@@ -623,9 +625,11 @@ def _add_reader_arguments(p: argparse.ArgumentParser) -> None:
     )
     g.add_argument(
         "--timestamps",
-        choices=["auto", "ipc", "logger", "index", "header", "bag"],
-        help="CARMEN: the stamp field to use, ipc, logger or index (scans 0.2 s apart); ROS: "
-        "header or bag (record time); default auto: the sound one, else an error",
+        choices=["auto", "ipc", "logger", "index", "header", "bag", "log"],
+        help="the clock to use (docs/readers.md); default auto: the sound one, else an "
+        "error naming the defect. CARMEN: the stamp field ipc or logger; ROS: header "
+        "stamps or bag (record times); fgslam logs: log (its stamps as they are); CARMEN and "
+        "fgslam logs: index (scans 0.2 s apart)",
     )
     g.add_argument("--scan-topic", help="ROS: sensor_msgs/LaserScan topic (default: the only)")
     g.add_argument("--odom-topic", help="ROS: nav_msgs/Odometry topic (default: the only)")

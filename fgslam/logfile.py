@@ -10,6 +10,7 @@ memory and reports every problem as a one-line :class:`LogFormatError` naming fi
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import gzip
 import io
 import json
@@ -17,10 +18,12 @@ import math
 import operator
 import os
 import zlib
+from array import array
 from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass
 from os import PathLike
+from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
@@ -36,6 +39,12 @@ from fgslam.events import (
     SonarReading,
     TruthPose,
 )
+from fgslam.readers.sanity import (
+    BACKWARDS_TOLERANCE,
+    choose_clock,
+    index_stamps,
+    stream_defects,
+)
 from fgslam.safeio import is_special, temp_path
 
 FORMAT_NAME = "FGSLAM-LOG"
@@ -49,6 +58,8 @@ MAX_ABS_STAMP = 1e10
 KIND_LETTERS = {"plane": "P", "corner": "C", "edge": "E"}
 LETTER_KINDS = {v: k for k, v in KIND_LETTERS.items()}
 HEADER_TAGS = ("CONFIG", "WORLD", "META")
+CLOCKS = ("auto", "log", "index")  # LogReader(timestamps=...), docs/readers.md
+UNIX_CLOCK = 1e8  # s: a log whose median stamp is beyond runs on UNIX time (0 is then junk)
 assert set(KIND_LETTERS) == set(SONAR_KINDS)
 
 StrPath = str | PathLike[str]
@@ -386,9 +397,26 @@ class LogReader:
     Records stamped earlier than the record of the same type before them are passed on as
     they are (the SLAM pipeline puts them back in order or drops them) and counted in
     ``backwards`` (by record type: odometry, laser, sonar, truth).
+
+    ``timestamps`` checks the log's clock before reading (docs/readers.md, "Timestamps"):
+    ``None`` (default) does not; ``"auto"`` refuses a log whose stamps are stamped 0,
+    wrapped, quantised, junk or going backwards by more than ``backwards_tolerance`` s
+    (:func:`fgslam.readers.sanity.stream_defects`) with a one-line :class:`LogFormatError`
+    naming the defect and its first line, drops the records with sporadic bad stamps
+    (counted in ``backwards``; an odometry record's ticks are added to the next one);
+    ``"log"`` uses the stamps as they are whatever their defects; ``"index"`` stamps scan k
+    at ``k * INDEX_PERIOD`` and spreads the other records between scans. What was done is in
+    ``clock_record`` and ``summary()["timestamps"]``. The check reads the file once more
+    (it needs a regular file).
     """
 
-    def __init__(self, path: StrPath, tolerant: bool = False) -> None:
+    def __init__(
+        self,
+        path: StrPath,
+        tolerant: bool = False,
+        timestamps: str | None = None,
+        backwards_tolerance: float = BACKWARDS_TOLERANCE,
+    ) -> None:
         self.path = path
         self.name = str(path)
         self.tolerant = tolerant
@@ -397,6 +425,11 @@ class LogReader:
         self.problems: list[str] = []
         self.backwards: Counter[str] = Counter()
         self._last_t: dict[str, float] = {}
+        self.clock: str | None = None  # the clock used, when checked
+        self.clock_record: dict[str, Any] | None = None
+        self._index: tuple[np.ndarray, np.ndarray] | None = None  # lines, stamps (index)
+        self._bad_lines: set[int] = set()  # records with sporadic bad stamps
+        self._carry = (0, 0)  # ticks of dropped odometry records, for the next one
         try:
             self._file, self._gzipped = _open_binary(path, "r")
         except OSError as exc:
@@ -405,6 +438,8 @@ class LogReader:
             self._lines = self._read_lines()
             self._pending: tuple[int, bytes | None] | None = None
             self._read_header()
+            if timestamps is not None:
+                self._check_clock(timestamps, backwards_tolerance)
         except BaseException:
             self.close()
             raise
@@ -412,15 +447,16 @@ class LogReader:
 
     # -- lines
 
-    def _read_lines(self) -> Iterator[tuple[int, bytes | None]]:
+    def _read_lines(self, file: IO[bytes] | None = None) -> Iterator[tuple[int, bytes | None]]:
         """(line number, bytes without EOL) pairs; None for a line longer than MAX_LINE_BYTES."""
+        file = self._file if file is None else file
         n = 0
         while True:
             try:
-                raw = self._file.readline(MAX_LINE_BYTES + 1)
+                raw = file.readline(MAX_LINE_BYTES + 1)
                 too_long = len(raw) > MAX_LINE_BYTES and not raw.endswith(b"\n")
                 while too_long and raw and not raw.endswith(b"\n"):
-                    raw = self._file.readline(MAX_LINE_BYTES)
+                    raw = file.readline(MAX_LINE_BYTES)
             except (EOFError, zlib.error, OSError) as exc:  # BadGzipFile is an OSError
                 where = f"after line {n}" if n else "at the start"
                 what = "corrupt or truncated gzip data" if self._gzipped else "read error"
@@ -515,12 +551,84 @@ class LogReader:
     def summary(self) -> dict[str, Any]:
         """What was skipped or found out of order so far (the keys of the foreign readers'
         ``problems.summary()``)."""
-        return {
+        out = {
             "skipped": self.skipped,
             "skipped_by_reason": dict(self.skipped_by_reason),
             "timestamps_backwards": dict(self.backwards),
             "problems": list(self.problems),
         }
+        if self.clock_record is not None:
+            out["timestamps"] = self.clock_record
+        return out
+
+    # -- clock
+
+    def _check_clock(self, requested: str, tolerance: float) -> None:
+        """One pass over the records' stamps (tag and stamp only): the defects of the log's
+        clock per stream, the clock chosen (:func:`fgslam.readers.sanity.choose_clock`), the
+        records with sporadic bad stamps, and with ``index`` every record's stamp."""
+        from fgslam.readers.common import ReaderError
+
+        if requested not in CLOCKS:
+            raise LogFormatError(
+                f"unknown --timestamps {requested!r} for an fgslam log; expected one of {CLOCKS}"
+            )
+        if not Path(self.path).is_file():  # a FIFO or a device: it cannot be read twice
+            if requested == "index":
+                raise LogFormatError(f"{self.name}: --timestamps index needs a regular file")
+            self.clock = "log"
+            self.clock_record = {
+                "requested": requested,
+                "used": "log",
+                "checked": False,
+                "why": "not a regular file",
+            }
+            return
+        lines, stamps, kinds = array("q"), array("d"), []
+        first = self._pending[0] if self._pending is not None else math.inf
+        f, _ = _open_binary(self.path, "r")
+        try:
+            for lineno, raw in self._read_lines(f):
+                if lineno < first or raw is None:
+                    continue
+                tok = raw.split(None, 2)
+                if len(tok) < 2 or tok[0] not in (b"O", b"L", b"S", b"T"):
+                    continue
+                tag = tok[0].decode()
+                try:
+                    t = _stamp(tok[1].decode("ascii"), "")
+                except (_Bad, UnicodeDecodeError):
+                    continue  # a bad record: the reading pass reports it
+                lines.append(lineno)
+                stamps.append(t)
+                kinds.append(_STREAMS[tag])
+        except LogFormatError:
+            pass  # damaged gzip data: the reading pass raises when it gets there
+        finally:
+            f.close()
+        ln, ts, kd = np.asarray(lines, dtype=int), np.asarray(stamps), np.array(kinds)
+        unix = bool(len(ts)) and float(np.median(np.abs(ts))) > UNIX_CLOCK
+        streams = {k: (ln[kd == k], ts[kd == k]) for k in _STREAMS.values() if (kd == k).any()}
+        report = stream_defects(streams, tolerance, scans="laser", zero_is_junk=unix)
+        try:
+            clock, record = choose_clock(
+                self.name,
+                {"log": report},
+                requested,
+                choices=CLOCKS,
+                labels={"log": "stamps"},
+                hint="index|log",
+            )
+        except ReaderError as exc:
+            raise LogFormatError(str(exc)) from None
+        record["unix_time"] = unix
+        self.clock, self.clock_record = clock, record
+        if clock == "index":
+            kinds_index = ["scan" if k == "laser" else k for k in kinds]
+            self._index = (ln, np.asarray(index_stamps(kinds_index)))
+        else:
+            for bad in report.sporadic.values():
+                self._bad_lines |= bad
 
     @property
     def header(self) -> LogHeader:
@@ -548,6 +656,21 @@ class LogReader:
                 )
             event = parser(f, self.config)
             stream = _STREAMS[f[0]]
+            if self._index is not None:
+                lines, stamps = self._index
+                i = int(np.searchsorted(lines, lineno))
+                if i < len(lines) and lines[i] == lineno:
+                    event = dataclasses.replace(event, t=float(stamps[i]))
+            elif lineno in self._bad_lines:  # a sporadic junk or far-backward stamp
+                self.backwards[stream] += 1
+                if isinstance(event, OdometryEvent):
+                    r, left = self._carry
+                    self._carry = (r + event.ticks_right, left + event.ticks_left)
+                return None
+            if isinstance(event, OdometryEvent) and self._carry != (0, 0):
+                r, left = self._carry
+                event = OdometryEvent(event.t, event.ticks_right + r, event.ticks_left + left)
+                self._carry = (0, 0)
             if event.t < self._last_t.get(stream, -math.inf):
                 self.backwards[stream] += 1
             else:

@@ -97,18 +97,27 @@ def write_bag(
     with_range: bool = True,
     zero_stamps: bool = False,
     jump: int | None = None,
+    header=None,
+    record=None,
 ) -> None:
     """A bag with /scan (181 beams over 180 deg), /odom (two messages per scan, the robot
     advancing 5 cm and turning 0.02 rad per message) and /sonar (sensor_msgs/Range, one
     out-of-range reading). ``zero_stamps``: every header stamp 0 (the record times stay);
-    ``jump``: odometry message ``jump`` 1e6 m off."""
+    ``jump``: odometry message ``jump`` 1e6 m off; ``header(topic, k, t)`` /
+    ``record(topic, k, t)``: the header stamp / record time of the k-th message (from 0)
+    of a topic instead of ``t``."""
     from rosbags.typesys import Stores, get_typestore
 
     ts = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
     T = ts.types
     Header, Time = T["std_msgs/msg/Header"], T["builtin_interfaces/msg/Time"]
 
+    count = {"/scan": 0, "/odom": 0, "/sonar": 0}
+
     def hdr(t, frame):
+        topic = {"odom": "/odom", "laser": "/scan", "sonar": "/sonar"}[frame]
+        if header is not None:
+            t = header(topic, count[topic], t)
         if zero_stamps:  # an unset header: the bag's record time is the only clock
             t = 0.0
         sec = math.floor(t)
@@ -128,6 +137,12 @@ def write_bag(
     g = {k.split("/")[-1]: T[k] for k in T if k.startswith("geometry_msgs/msg/")}
     ser = ts.serialize_ros1 if ros1 else ts.serialize_cdr
     zero3 = g["Vector3"](x=0.0, y=0.0, z=0.0)
+
+    def put(conn, topic, t, data):
+        ns = round(1e9 * (record(topic, count[topic], t) if record else t))
+        count[topic] += 1
+        writer.write(conn, ns, data)
+
     with writer:
         cs = writer.add_connection("/scan", "sensor_msgs/msg/LaserScan", typestore=ts)
         co = writer.add_connection("/odom", "nav_msgs/msg/Odometry", typestore=ts)
@@ -153,7 +168,7 @@ def write_bag(
                     twist=g["Twist"](linear=zero3, angular=zero3), covariance=np.zeros(36)
                 ),
             )
-            writer.write(co, int(t * 1e9), ser(odom, "nav_msgs/msg/Odometry"))
+            put(co, "/odom", t, ser(odom, "nav_msgs/msg/Odometry"))
             if k % 2 == 0:
                 continue
             stamp = t - 0.5 if k == backwards_scan else t
@@ -171,7 +186,7 @@ def write_bag(
                 ranges=r,
                 intensities=np.zeros(0, dtype=np.float32),
             )
-            writer.write(cs, int(t * 1e9), ser(scan, "sensor_msgs/msg/LaserScan"))
+            put(cs, "/scan", t, ser(scan, "sensor_msgs/msg/LaserScan"))
             if cr is not None:
                 rng = T["sensor_msgs/msg/Range"](
                     header=hdr(t, "sonar"),
@@ -181,4 +196,38 @@ def write_bag(
                     max_range=5.0,
                     range=9.0 if k == 3 else 1.5,
                 )
-                writer.write(cr, int(t * 1e9), ser(rng, "sensor_msgs/msg/Range"))
+                put(cr, "/sonar", t, ser(rng, "sensor_msgs/msg/Range"))
+
+
+def write_native(path, n: int = 30, stamp=None, t0: float = 0.0) -> None:
+    """A native fgslam log of ``n`` scan periods of 0.2 s from ``t0``, in time order: per
+    period four odometry records (3 ticks right, 2 left each), a sonar and a truth record
+    between them, then a 5-beam scan. ``stamp(kind, k, t)`` (kind ``odometry``, ``sonar``,
+    ``truth`` or ``laser``; k counts that kind from 0) gives a record's stamp instead of
+    ``t``; the first odometry record is at ``t0`` itself (a clock may start at 0)."""
+    import dataclasses
+
+    from fgslam.config import load_config
+    from fgslam.events import LaserScan, OdometryEvent, SonarReading, TruthPose
+    from fgslam.logfile import LogWriter
+
+    cfg = load_config()
+    cfg = dataclasses.replace(cfg, laser=dataclasses.replace(cfg.laser, n_beams=5))
+    stamp = stamp or (lambda kind, k, t: t)
+    count = {"odometry": 0, "sonar": 0, "truth": 0, "laser": 0}
+
+    def at(kind: str, t: float) -> float:
+        k = count[kind]
+        count[kind] += 1
+        return float(stamp(kind, k, t))
+
+    with LogWriter(path, cfg, "synthetic") as w:
+        for p in range(n):
+            base = t0 + 0.2 * p
+            for j in range(4):
+                w.write(OdometryEvent(at("odometry", base + 0.05 * j), 3, 2))
+                if j == 1:
+                    w.write(SonarReading(at("sonar", base + 0.07), 0, 0.0, ()))
+                if j == 2:
+                    w.write(TruthPose(at("truth", base + 0.1), 0.01 * p, 0.0, 0.0))
+            w.write(LaserScan(at("laser", base + 0.15), np.full(5, 2.0)))

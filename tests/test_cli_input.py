@@ -166,13 +166,23 @@ def test_fifty_odometry_records_eight_seconds_back_are_reported(tiny_log, tmp_pa
     log = tmp_path / "back.log"
     log.write_text("".join(head + recs))
     out = tmp_path / "run"
-    assert main(["run", str(log), "--backend", "ekf", "--out", str(out)]) == 0
+    # 50 of 1200 (4 %) beyond the 2 s tolerance: the clock is refused (issue 13) ...
+    assert main(["run", str(log), "--backend", "ekf", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "odometry stamps backwards by more than 2 s (50 of 1200 bad" in err
+    assert "--timestamps index|log" in err and not (out / "report.json").exists()
+    # ... and run as it is when asked: reported, never silent
+    opts = ["--backend", "ekf", "--timestamps", "log", "--out", str(out)]
+    assert main(["run", str(log), *opts]) == 0
     text = capsys.readouterr().out
     assert "timestamps going backwards: 50 odometry" in text and "dropped 50" in text
     assert "WARNING: 50 of " in text
-    inp = json.loads((out / "report.json").read_text())["input"]
+    rep = json.loads((out / "report.json").read_text())
+    inp = rep["input"]
     assert inp["timestamps_backwards"] == {"odometry": 50}
     assert inp["events_dropped_out_of_order"] == 50 and "warning" in inp
+    assert rep["reader"]["timestamps"]["used"] == "log"
+    assert "backwards" in rep["reader"]["timestamps"]["defects"]["log"][0]
 
 
 def test_reversed_log_is_reported(tiny_log, tmp_path, capsys):
@@ -180,7 +190,10 @@ def test_reversed_log_is_reported(tiny_log, tmp_path, capsys):
     log = tmp_path / "reversed.log"
     log.write_text("".join(head + recs[::-1]))
     out = tmp_path / "run"
-    assert main(["run", str(log), "--backend", "ekf", "--out", str(out)]) == 0
+    assert main(["run", str(log), "--backend", "ekf", "--out", str(out)]) == 2
+    assert "stamps backwards by more than 2 s" in capsys.readouterr().err
+    opts = ["--backend", "ekf", "--timestamps", "log", "--out", str(out)]
+    assert main(["run", str(log), *opts]) == 0
     text = capsys.readouterr().out
     inp = json.loads((out / "report.json").read_text())["input"]
     assert inp["records"] == len(recs)

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from fgslam.readers.common import ReaderError, StrPath, head_text
+from fgslam.readers.sanity import BACKWARDS_TOLERANCE
 
 FORMATS = ("fgslam", "carmen", "ros", "victoria")
 
@@ -50,14 +51,21 @@ def sniff_format(path: StrPath) -> str:
 
 def open_log(path: StrPath, format: str | None = None, **options: Any):
     """Open a log of any supported sensor-log format; ``options`` go to the reader
-    (``tolerant`` for all; CARMEN: ``mode``, ``no_return``, ``timestamps``
-    (``auto``/``ipc``/``logger``/``index``), ``limits``, ``backwards_tolerance``; ROS:
-    ``scan_topic``, ``odom_topic``, ``range_topics``, ``laser_mount``, ``range_mounts``)."""
+    (``tolerant``, ``timestamps`` and ``backwards_tolerance`` for all; ``timestamps``: fgslam
+    ``auto``/``log``/``index``, CARMEN ``auto``/``ipc``/``logger``/``index``, ROS
+    ``auto``/``header``/``bag``; CARMEN: ``mode``, ``no_return``, ``limits``; ROS:
+    ``scan_topic``, ``odom_topic``, ``range_topics``, ``laser_mount``, ``range_mounts``,
+    ``limits``). Every format's clock is checked (docs/readers.md, "Timestamps")."""
     fmt = format or sniff_format(path)
     if fmt == "fgslam":
         from fgslam.logfile import LogReader
 
-        return LogReader(path, tolerant=bool(options.get("tolerant", False)))
+        return LogReader(
+            path,
+            tolerant=bool(options.get("tolerant", False)),
+            timestamps=options.get("timestamps") or "auto",
+            backwards_tolerance=options.get("backwards_tolerance", BACKWARDS_TOLERANCE),
+        )
     if fmt == "carmen":
         from fgslam.readers.carmen import CarmenLog
 
@@ -83,6 +91,7 @@ def open_log(path: StrPath, format: str | None = None, **options: Any):
             "tolerant",
             "timestamps",
             "limits",
+            "backwards_tolerance",
         )
         return RosBag(path, **{k: v for k, v in options.items() if k in keys})
     if fmt == "victoria":

@@ -14,9 +14,14 @@
   its echoes nor measures their bearing: this mapping treats every echo as a plane seen at
   normal incidence, which is often wrong; use ``--sensors laser`` unless that holds.
 
-Times are the messages' header stamps, or the bag's record times when the first scan's header
-stamp is unset (0) or not a time (``timestamps``: ``auto``, ``header``, ``bag``; recorded in
-``meta["timestamps"]``). Odometry messages moving faster than the reader's
+Times are the messages' header stamps, or the bag's record times where the header stamps are
+unsound (``timestamps``: ``auto``, ``header``, ``bag``; recorded in ``meta["timestamps"]``):
+before reading, both clocks are checked per topic with the rules of
+:mod:`fgslam.readers.sanity` (stamped 0, wrapped, quantised scans, junk, backwards beyond
+``backwards_tolerance``), and the header stamps also for being one clock across the topics
+(:func:`~fgslam.readers.sanity.common_clock`); with neither sound, a one-line
+:class:`ReaderError` names each clock's first defect and its topic. Messages with sporadic
+bad stamps are handled as going backwards (below). Odometry messages moving faster than the reader's
 :class:`~fgslam.readers.sanity.OdometryLimits` are an error (strict) or skipped and counted
 (tolerant); gaps in the odometry while scans come are counted as holes. Topic names are
 chosen by option; left out, the only topic of the right type is taken. A bag without such a
@@ -47,7 +52,16 @@ from fgslam.readers.common import (
     input_warnings,
     relative,
 )
-from fgslam.readers.sanity import MAX_STAMP, OdometryLimits, implausible
+from fgslam.readers.sanity import (
+    BACKWARDS_TOLERANCE,
+    MAX_STAMP,
+    OdometryLimits,
+    StampReport,
+    choose_clock,
+    common_clock,
+    implausible,
+    stream_defects,
+)
 
 ROS_CLOCKS = ("auto", "header", "bag")
 SCAN = "sensor_msgs/msg/LaserScan"
@@ -103,11 +117,12 @@ class RosBag(Source):
         tolerant: bool = False,
         timestamps: str = "auto",
         limits: OdometryLimits | None = None,
+        backwards_tolerance: float = BACKWARDS_TOLERANCE,
     ) -> None:
         super().__init__(path)
         if timestamps not in ROS_CLOCKS:
             raise ReaderError(
-                f"unknown --timestamps {timestamps!r} for a bag; expected {ROS_CLOCKS}"
+                f"unknown --timestamps {timestamps!r} for a bag; expected one of {ROS_CLOCKS}"
             )
         self.limits = limits or OdometryLimits()
         AnyReader, AnyReaderError, Stores, get_typestore = _import()
@@ -121,20 +136,10 @@ class RosBag(Source):
             self.range_topics = [
                 self._pick(topics, t, RANGE, "--range-topic") for t in range_topics
             ]
-            first = None
-            conns = [c for c in reader.connections if c.topic == self.scan_topic]
-            for conn, _, raw in reader.messages(connections=conns):
-                first = reader.deserialize(raw, conn.msgtype)
-                break
+            first = self._clock_pass(reader)
         if first is None:
             raise ReaderError(f"{self.name}: topic {self.scan_topic} has no messages")
-        # the header stamp unless it is unset (0) or not a time: then the bag's record time
-        t0 = _stamp(first)
-        header_sound = math.isfinite(t0) and 1e-9 < t0 < MAX_STAMP
-        self.clock = timestamps if timestamps != "auto" else ("header" if header_sound else "bag")
-        clock_record = {"requested": timestamps, "used": self.clock, "defects": {}}
-        if not header_sound:
-            clock_record["defects"]["header"] = [f"first scan's header stamp is {t0:.6g}"]
+        clock_record = self._choose_clock(timestamps, backwards_tolerance)
         n = len(first.ranges)
         fov = round(math.degrees(first.angle_max - first.angle_min), 4)  # float32 angles
         if n < 2 or not 0 < fov <= 360:
@@ -175,6 +180,61 @@ class RosBag(Source):
         self.problems.notes["timestamps"] = clock_record
         self._odo_notes = {"holes": 0, "implausible": 0}
         self.problems.notes["odometry"] = self._odo_notes
+
+    def _clock_pass(self, reader: Any) -> Any:
+        """One pass over the messages of the topics read: each one's header stamp and record
+        time, by topic and message number (from 1, every message counted, undecodable ones
+        left out of the stamps); returns the first scan."""
+        wanted = {self.scan_topic, self.odom_topic, *self.range_topics}
+        self._stamps: dict[str, tuple[list[int], list[float], list[float]]] = {
+            t: ([], [], []) for t in (self.scan_topic, self.odom_topic, *self.range_topics)
+        }
+        count = dict.fromkeys(wanted, 0)
+        first = None
+        conns = [c for c in reader.connections if c.topic in wanted]
+        for conn, bag_ns, raw in reader.messages(connections=conns):
+            count[conn.topic] += 1
+            try:
+                msg = reader.deserialize(raw, conn.msgtype)
+                header = _stamp(msg)
+            except Exception:  # the reading pass reports it
+                continue
+            if first is None and conn.topic == self.scan_topic:
+                first = msg
+            k, h, b = self._stamps[conn.topic]
+            k.append(count[conn.topic])
+            h.append(header)
+            b.append(1e-9 * float(bag_ns))
+        return first
+
+    def _choose_clock(self, requested: str, tolerance: float) -> dict[str, Any]:
+        """The defects of the header stamps (per topic, and whether the topics share one
+        clock) and of the record times (per topic), the clock chosen
+        (:func:`fgslam.readers.sanity.choose_clock`) and the messages with sporadic bad
+        stamps; returns the record of the choice."""
+        reports: dict[str, StampReport] = {}
+        for clock, col in (("header", 1), ("bag", 2)):
+            streams = {t: (v[0], v[col]) for t, v in self._stamps.items()}
+            rep = stream_defects(streams, tolerance, scans=self.scan_topic, unit="message")
+            if clock == "header" and rep.sound:
+                offsets = {t: np.subtract(v[2], v[1]) for t, v in self._stamps.items()}
+                split = common_clock(offsets, tolerance)
+                if split:
+                    rep.defects.append(f"header stamps of {split}")
+            reports[clock] = rep
+        self.clock, record = choose_clock(
+            self.name,
+            reports,
+            requested,
+            choices=ROS_CLOCKS,
+            labels={"header": "header stamps", "bag": "record times"},
+            hint="header|bag",
+        )
+        self._bad: set[tuple[str, int]] = {
+            (topic, k) for topic, ks in reports[self.clock].sporadic.items() for k in ks
+        }
+        del self._stamps
+        return record
 
     def _open(self):
         try:
@@ -217,11 +277,16 @@ class RosBag(Source):
         wanted = {self.scan_topic, self.odom_topic, *self.range_topics}
         with self._open() as reader:
             conns = [c for c in reader.connections if c.topic in wanted]
+            count = dict.fromkeys(wanted, 0)
             for conn, bag_ns, raw in reader.messages(connections=conns):
+                count[conn.topic] += 1
+                bad = (conn.topic, count[conn.topic]) in self._bad  # a sporadic bad stamp
                 try:
                     msg = reader.deserialize(raw, conn.msgtype)
                     t = _stamp(msg) if self.clock == "header" else 1e-9 * float(bag_ns)
-                    if not (math.isfinite(t) and abs(t) < MAX_STAMP):
+                    if bad:
+                        t = math.nan
+                    elif not (math.isfinite(t) and abs(t) < MAX_STAMP):
                         raise ValueError(f"stamp {t:.6g} is not a time")
                     if conn.topic == self.odom_topic:
                         p = msg.pose.pose
@@ -237,7 +302,10 @@ class RosBag(Source):
                 if conn.topic == self.odom_topic:
                     if last_odom_pose is None:
                         last_odom_pose, last_odom_t = pose, t
-                        last = max(last, t)
+                        if bad:
+                            pr.backwards[conn.topic] += 1
+                        else:
+                            last = max(last, t)
                         continue
                     inc = relative(last_odom_pose, pose)
                     why = implausible(inc, t - last_odom_t, self.limits)
@@ -251,7 +319,11 @@ class RosBag(Source):
                         pr.skip("implausible odometry", text)
                         continue
                     carried = compose(carried, inc)
-                    last_odom_pose, last_odom_t = pose, t
+                    last_odom_pose = pose
+                    if bad:  # carried into the next message, as one going backwards
+                        pr.backwards[conn.topic] += 1
+                        continue
+                    last_odom_t = t
                     if t < last:
                         pr.backwards[conn.topic] += 1
                         continue
@@ -260,7 +332,7 @@ class RosBag(Source):
                     carried = np.zeros(3)
                     last_delivered_odo, in_hole = t, False
                     continue
-                if t < last:
+                if bad or t < last:
                     pr.backwards[conn.topic] += 1
                     continue
                 last = t

@@ -1,8 +1,10 @@
 """Sanity of foreign logs' clocks and odometry (docs/readers.md, "Timestamps and odometry").
 
-**Clocks.** :func:`stamp_defects` examines one stamp field (CARMEN: ``timestamp``, the
-``ipc`` clock, or ``logger_timestamp``) over the scans and over the odometry records, in file
-order, and names what makes it unusable:
+**Clocks.** :func:`stream_defects` examines one clock over the streams of a log, each in file
+order (CARMEN, :func:`stamp_defects`: the ``timestamp`` field, the ``ipc`` clock, or
+``logger_timestamp``, over the scans and the odometry records; native fgslam logs: the
+records' stamps over the laser, odometry, sonar and truth records; ROS bags: the header
+stamps or the record times, per topic), and names what makes it unusable:
 
 - ``stamped 0``: more than half of a stream's stamps are 0;
 - ``wrapped at 2^32``: a stamp drops by more than 2^31 s from a predecessor above 2^31 s;
@@ -14,11 +16,13 @@ order, and names what makes it unusable:
 
 Fewer junk or far-backward stamps than that are *sporadic*: counted (``bad_stamps``), and
 the reader treats those records as going backwards (a scan is dropped, an odometry record's
-motion is carried into the next sample). :func:`choose_clock` then takes the ``ipc`` field
-when it is sound, else the ``logger`` field when that is, else refuses with one line naming
-each field's first defect and its line; ``--timestamps index|ipc|logger`` forces a choice
-(``index``: scan k at ``k * INDEX_PERIOD`` s, the odometry records between two scans spread
-evenly between them).
+motion is carried into the next sample). :func:`choose_clock` then takes the first sound
+clock in the reader's order of preference (CARMEN: the ``ipc`` field, else the ``logger``
+field; ROS: header stamps, else record times; native: its one clock), else refuses with one
+line naming each clock's first defect and its line (message, topic); ``--timestamps`` forces
+a choice (``index``, CARMEN and native logs: scan k at ``k * INDEX_PERIOD`` s, the other
+records between two scans spread evenly between them). :func:`common_clock` tells whether
+several streams' stamps run on one clock, against a second clock (a bag's record times).
 
 **Odometry.** :func:`implausible` tells whether a pose increment over ``dt`` s exceeds a speed
 or turn-rate bound (with ``MIN_DT`` s of slack, so that stamps too close together are no
@@ -86,7 +90,13 @@ class StampReport:
 
 
 def _stream(
-    name: str, lines: np.ndarray, t: np.ndarray, tolerance: float, rep: StampReport
+    name: str,
+    lines: np.ndarray,
+    t: np.ndarray,
+    tolerance: float,
+    rep: StampReport,
+    unit: str = "line",
+    zero_is_junk: bool = True,
 ) -> None:
     if not len(t):
         return
@@ -94,10 +104,12 @@ def _stream(
     mostly_zero = zero.mean() > 0.5
     if mostly_zero:
         rep.defects.append(
-            f"{name} stamped 0 ({int(zero.sum())} of {len(t)}, first at line {lines[zero][0]})"
+            f"{name} stamped 0 ({int(zero.sum())} of {len(t)}, first at {unit} {lines[zero][0]})"
         )
         return
-    junk = (t < 0) | (np.abs(t) < 1e-9) | ~np.isfinite(t)
+    junk = ~np.isfinite(t)
+    if zero_is_junk:
+        junk |= (t < 0) | (np.abs(t) < 1e-9)
     bad = junk.copy()
     latest = -math.inf
     wrapped = None
@@ -111,18 +123,52 @@ def _stream(
         else:
             latest = max(latest, t[i])
     if wrapped is not None:
-        rep.defects.append(f"{name} stamps wrapped at 2^32 (line {lines[wrapped]})")
+        rep.defects.append(f"{name} stamps wrapped at 2^32 ({unit} {lines[wrapped]})")
         return
     if bad.sum() > MAX_BAD_FRACTION * len(t):
         i = int(np.argmax(bad))
         what = "junk" if junk[i] else f"backwards by more than {tolerance:g} s"
         rep.defects.append(
-            f"{name} stamps {what} ({int(bad.sum())} of {len(t)} bad, first at line "
+            f"{name} stamps {what} ({int(bad.sum())} of {len(t)} bad, first at {unit} "
             f"{lines[i]}: {t[i]:.6g})"
         )
         return
     if bad.any():
         rep.sporadic[name] = set(lines[bad].tolist())
+
+
+def stream_defects(
+    streams: dict[str, tuple[Any, Any]],
+    tolerance: float = BACKWARDS_TOLERANCE,
+    scans: str | None = "scan",
+    unit: str = "line",
+    zero_is_junk: bool = True,
+) -> StampReport:
+    """The defects of one clock over any number of streams: ``streams`` maps a stream's name
+    (``"scan"``, ``"odometry"``, a ROS topic) to its records' positions (line numbers, or
+    message numbers: ``unit`` names them in the messages) and stamps, each in file order.
+    The stream named ``scans`` is also checked for quantised stamps. ``zero_is_junk``:
+    stamps 0, negative or below 1e-9 s are junk (a UNIX clock, as CARMEN's); False for a
+    clock that may start at 0 (the simulator's), where only non-finite stamps are junk
+    (a stray 0 later in the log still goes backwards)."""
+    rep = StampReport()
+    arrays = {
+        k: (np.asarray(ln, dtype=int), np.asarray(t, dtype=float)) for k, (ln, t) in streams.items()
+    }
+    for name, (ln, t) in arrays.items():
+        _stream(name, ln, t, tolerance, rep, unit, zero_is_junk)
+    if scans in arrays:
+        sl, st = arrays[scans]
+        if len(st) > 1 and not (st == 0).mean() > 0.5:
+            same = np.diff(st) == 0
+            if same.mean() > MAX_SHARED_SCANS:
+                i = int(np.argmax(same)) + 1
+                rep.defects.append(
+                    f"{scans} stamps quantised ({int(same.sum()) + 1} of {len(st)} scans share "
+                    f"a stamp, {len(np.unique(st))} distinct values; first at {unit} {sl[i]}: "
+                    f"{st[i]:.6g})"
+                )
+    return rep
 
 
 def stamp_defects(
@@ -133,47 +179,63 @@ def stamp_defects(
     tolerance: float = BACKWARDS_TOLERANCE,
 ) -> StampReport:
     """The defects of one stamp field over the scans and the odometry records (file order)."""
-    rep = StampReport()
-    sl, st = np.asarray(scan_lines, dtype=int), np.asarray(scan_t, dtype=float)
-    ol, ot = np.asarray(odo_lines, dtype=int), np.asarray(odo_t, dtype=float)
-    _stream("scan", sl, st, tolerance, rep)
-    _stream("odometry", ol, ot, tolerance, rep)
-    if len(st) > 1 and not (st == 0).mean() > 0.5:
-        same = np.diff(st) == 0
-        if same.mean() > MAX_SHARED_SCANS:
-            i = int(np.argmax(same)) + 1
-            rep.defects.append(
-                f"scan stamps quantised ({int(same.sum()) + 1} of {len(st)} scans share a "
-                f"stamp, {len(np.unique(st))} distinct values; first at line {sl[i]}: "
-                f"{st[i]:.6g})"
-            )
-    return rep
+    return stream_defects({"scan": (scan_lines, scan_t), "odometry": (odo_lines, odo_t)}, tolerance)
+
+
+def common_clock(offsets: dict[str, Any], tolerance: float = BACKWARDS_TOLERANCE) -> str | None:
+    """Whether the stamps of several streams run on one clock, judged against a second clock
+    that does (a bag's record times): ``offsets`` maps a stream to (second clock - stamp)
+    per record. None when the streams' median offsets agree within ``tolerance`` s; else the
+    defect, naming the two streams furthest apart."""
+    med = {k: float(np.median(v)) for k, v in offsets.items() if len(v)}
+    finite = {k: v for k, v in med.items() if math.isfinite(v)}
+    if len(finite) < 2:
+        return None
+    lo, hi = min(finite, key=finite.get), max(finite, key=finite.get)
+    gap = finite[hi] - finite[lo]
+    if gap <= tolerance:
+        return None
+    return (
+        f"{lo} and {hi} {gap:.6g} s apart against the record times (not one clock; "
+        f"median record time - stamp {finite[lo]:.6g} s and {finite[hi]:.6g} s)"
+    )
 
 
 def choose_clock(
-    name: str, reports: dict[str, StampReport], requested: str = "auto"
+    name: str,
+    reports: dict[str, StampReport],
+    requested: str = "auto",
+    choices: tuple[str, ...] = CLOCKS,
+    labels: dict[str, str] | None = None,
+    hint: str = "index|ipc|logger",
 ) -> tuple[str, dict[str, Any]]:
-    """The clock to use (``ipc``, ``logger`` or ``index``) and the record of the choice (for
-    the reader's metadata). ``reports`` maps ``ipc`` and ``logger`` to their defects. Raises
-    :class:`~fgslam.readers.common.ReaderError` when ``requested`` is ``auto`` and no field is
-    sound."""
+    """The clock to use and the record of the choice (for the reader's metadata).
+    ``reports`` maps each clock that can be checked to its defects, in the order of
+    preference (CARMEN: ``ipc``, ``logger``; ROS: ``header``, ``bag``; native: ``log``);
+    ``choices`` are the values ``requested`` may take (``auto`` among them); ``labels`` name
+    the clocks in the error (default ``"<clock> field"``), ``hint`` the ``--timestamps``
+    values it suggests. Raises :class:`~fgslam.readers.common.ReaderError` when
+    ``requested`` is ``auto`` and no clock is sound."""
     from fgslam.readers.common import ReaderError
 
-    if requested not in CLOCKS:
-        raise ReaderError(f"unknown --timestamps {requested!r}; expected one of {CLOCKS}")
+    if requested not in choices:
+        raise ReaderError(f"unknown --timestamps {requested!r}; expected one of {choices}")
+    labels = labels or {}
     record: dict[str, Any] = {
         "requested": requested,
         "defects": {k: list(r.defects) for k, r in reports.items() if r.defects},
     }
     if requested == "auto":
-        for clock in ("ipc", "logger"):
-            if clock in reports and reports[clock].sound:
+        for clock, rep in reports.items():
+            if rep.sound:
                 chosen = clock
                 break
         else:
-            what = "; ".join(f"{k} field: {r.defects[0]}" for k, r in reports.items())
+            what = "; ".join(
+                f"{labels.get(k, f'{k} field')}: {r.defects[0]}" for k, r in reports.items()
+            )
             raise ReaderError(
-                f"{name}: no usable timestamps ({what}); choose with --timestamps index|ipc|logger"
+                f"{name}: no usable timestamps ({what}); choose with --timestamps {hint}"
             )
     else:
         chosen = requested
@@ -186,9 +248,10 @@ def choose_clock(
 
 
 def index_stamps(kinds: list[str]) -> list[float]:
-    """Stamps by record order (``kinds``: ``"scan"`` or ``"odometry"`` per timed record):
-    scan k (from 1) at ``k * INDEX_PERIOD``, the odometry records before it spread evenly
-    over the period before it (and after the last scan, over the period after it)."""
+    """Stamps by record order (``kinds``: ``"scan"`` or another kind per timed record): scan
+    k (from 1) at ``k * INDEX_PERIOD``, the other records before it (odometry, sonar, truth)
+    spread evenly over the period before it (and after the last scan, over the period after
+    it)."""
     out = [0.0] * len(kinds)
     scan_k = 0
     pending: list[int] = []
