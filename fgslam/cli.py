@@ -182,11 +182,10 @@ def _log_duration(path: str) -> float | None:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
+    from fgslam.config import with_scanmatch
     from fgslam.readers import open_log
     from fgslam.slam.outputs import write_outputs
     from fgslam.slam.runner import run_slam
-
-    from fgslam.config import with_scanmatch
 
     reader = open_log(args.log, **_reader_options(args))
     cfg = with_scanmatch(_run_config(reader, args.config, args.log), _scanmatch_options(args))

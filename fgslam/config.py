@@ -500,8 +500,7 @@ def _check_consistency(cfg: RobotConfig, src: str) -> None:
         value = getattr(cfg.scanmatch, key)
         if value not in choices:
             raise ConfigError(
-                f"{src}: key 'scanmatch.{key}': expected one of {', '.join(choices)}, "
-                f"got {value!r}"
+                f"{src}: key 'scanmatch.{key}': expected one of {', '.join(choices)}, got {value!r}"
             )
     if cfg.laser.delay_max < cfg.laser.delay_min:
         raise ConfigError(f"{src}: key 'laser.delay_max': expected >= laser.delay_min")

@@ -7,8 +7,11 @@ scan and its ``neighbours`` keyframes either side (placed in the candidate's fra
 current estimates), searched around the backend's relative pose within a window sized by
 that pose's uncertainty (3 sigma, clamped). A closure is accepted only when it is verified:
 the match passes its own checks, its score and overlap reach the stricter loop thresholds,
-and it agrees with the backend's relative pose and covariance (chi-square gate ``gate_p`` on
-the difference; a similar-looking different place lies outside it). Accepted closures enter
+the current scan does not see through the old place's surfaces (negative information: at
+most ``max_see_through`` of the local map's points that lie in the scan's view are behind
+its returns by more than ``see_through_margin``; a similar-looking room with one thing moved
+fails here), and it agrees with the backend's relative pose and covariance (chi-square gate
+``gate_p`` on the difference). Accepted closures enter
 the graph as robust between factors. Every attempt is kept in :attr:`LoopCloser.closures`
 (report.json, map.png).
 
@@ -45,8 +48,10 @@ class LoopParams:
     max_search_theta: float = math.radians(30.0)
     min_search_theta: float = math.radians(5.0)
     min_score: float = 0.5
-    min_overlap: float = 0.7
+    min_overlap: float = 0.45
     gate_p: float = 0.999
+    see_through_margin: float = 0.3
+    max_see_through: float = 0.05
 
 
 @dataclass
@@ -64,6 +69,7 @@ class Closure:
     score: float = 0.0
     overlap: float = 0.0
     mahalanobis2: float = math.nan
+    see_through: float = math.nan
 
     def to_json(self) -> dict:
         return {
@@ -74,6 +80,9 @@ class Closure:
             "pose": None if self.pose is None else [round(float(v), 5) for v in self.pose],
             "score": round(self.score, 4),
             "overlap": round(self.overlap, 4),
+            "see_through": None
+            if not math.isfinite(self.see_through)
+            else round(self.see_through, 4),
             "mahalanobis2": None
             if not math.isfinite(self.mahalanobis2)
             else round(self.mahalanobis2, 3),
@@ -93,6 +102,31 @@ def _in_frame(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.floa
     dx, dy = b[0] - a[0], b[1] - a[1]
     th = math.atan2(math.sin(b[2] - a[2]), math.cos(b[2] - a[2]))
     return np.array([c * dx + s * dy, -s * dx + c * dy, th])
+
+
+def see_through(query: NDArray[np.float64], ref: NDArray[np.float64], pose, margin: float) -> float:
+    """The fraction of the reference points (their frame) that lie within the query scan's
+    view (query robot frame at ``pose`` in the reference frame) but in front of its return
+    at that bearing by more than ``margin`` m: surfaces the query sees through. Bearings and
+    ranges from the robot origin; points with no return near their bearing are not counted."""
+    q = np.asarray(query, dtype=float)
+    if len(q) < 2 or not len(ref):
+        return 0.0
+    x, y, th = (float(v) for v in pose)
+    c, s = math.cos(th), math.sin(th)
+    d = np.asarray(ref, dtype=float) - (x, y)
+    rx, ry = c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]
+    rb, rr = np.arctan2(ry, rx), np.hypot(rx, ry)
+    qb, qr = np.arctan2(q[:, 1], q[:, 0]), np.hypot(q[:, 0], q[:, 1])
+    order = np.argsort(qb)
+    qb, qr = qb[order], qr[order]
+    step = float(np.median(np.diff(qb))) if len(qb) > 2 else math.radians(1.0)
+    i = np.clip(np.searchsorted(qb, rb), 1, len(qb) - 1)
+    j = np.where(np.abs(rb - qb[i - 1]) <= np.abs(qb[i] - rb), i - 1, i)
+    seen = (np.abs(qb[j] - rb) <= 1.5 * step) & (rr > 0.2)
+    if not seen.any():
+        return 0.0
+    return float(np.mean(qr[j][seen] > rr[seen] + margin))
 
 
 class LoopCloser:
@@ -176,7 +210,8 @@ class LoopCloser:
             search_xy=float(np.clip(3.0 * max(sd[0], sd[1]), p.min_search_xy, p.max_search_xy)),
             search_theta=float(np.clip(3.0 * sd[2], p.min_search_theta, p.max_search_theta)),
         )
-        ref = Reference.build(self.local_map(j, poses), mp)
+        ref_points = self.local_map(j, poses)
+        ref = Reference.build(ref_points, mp)
         m = match(ref, self.scans[k], guess, mp)
         c = Closure(j, k, np.asarray(m.pose, dtype=float), np.asarray(m.cov), False, "")
         c.score, c.overlap = float(m.score), float(m.overlap)
@@ -185,6 +220,10 @@ class LoopCloser:
             return c
         if m.score < p.min_score or m.overlap < p.min_overlap:
             c.reason = "weak match"
+            return c
+        c.see_through = see_through(self.scans[k], ref_points, m.pose, p.see_through_margin)
+        if c.see_through > p.max_see_through:
+            c.reason = "sees through the old place"
             return c
         meas = relative_pose(m.pose, m.cov)
         xi = rel.localCoordinates(meas.delta)

@@ -6,8 +6,9 @@ Each front-end output (a laser scan, after its 6 s sonar window) goes to the sca
 whether it is a keyframe (policy ``motion`` by default, ``every-scan`` the paper's); the
 odometry samples between keyframes are preintegrated, and a keyframe is linked to the last by
 the wheel odometry, the scan match or both (``odometry``). Scans between keyframes keep their
-pose relative to their keyframe, so the result has a pose at every scan. The first keyframe is anchored at the
-log's true pose when it has one (so errors and NEES need no alignment), else at the origin.
+pose relative to their keyframe, so the result has a pose at every scan. The first keyframe
+is anchored at the log's true pose when it has one (so errors and NEES need no alignment),
+else at the origin.
 
 :class:`SlamPipeline` takes events one at a time (``fgslam online`` feeds it as data arrives;
 :func:`run_backends` loops over a log with it); a :class:`ReorderBuffer` in front of it puts
@@ -27,11 +28,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from factors.odometry import integrate_poses, preintegrate
-from fgslam.config import RobotConfig
+from fgslam.config import RobotConfig, match_params
 from fgslam.config import keyframe_params as config_keyframe_params
 from fgslam.config import loop_params as config_loop_params
 from fgslam.config import map_params as config_map_params
-from fgslam.config import match_params
 from fgslam.events import Event, OdometryEvent, TruthPose
 from fgslam.frontend.pipeline import FrontEnd
 from fgslam.ordering import REORDER_WINDOW, ReorderBuffer
@@ -314,7 +314,9 @@ class SlamPipeline:
         elif lr:
             self._odo_pose = integrate_poses(lr, ll, o.wheelbase, self._odo_pose)[-1]
         if not first:
-            self.stats["keyframes_scan_linked" if scan is not None else "keyframes_wheels_only"] += 1
+            self.stats[
+                "keyframes_scan_linked" if scan is not None else "keyframes_wheels_only"
+            ] += 1
         wheels = pre
         if scan is not None and self.keyframe_params.odometry == "scan":
             wheels = None  # the scan match alone (wheels only where it was rejected)
