@@ -5,8 +5,9 @@ point-landmark path :mod:`fgslam.slam.pointslam`).
 Per keyframe: predict (or start; wheel odometry and/or a scan match); apply the duplicate
 merges found after the last keyframe; associate (:mod:`fgslam.slam.association`, with the
 backend's fresh estimate); merge the map lines a measurement covers; observe; fuse the
-unassociated features into tentative landmarks and add the ones confirmed now (:mod:`fgslam.slam.lifecycle`); commit; update the segment
-geometry (:mod:`fgslam.slam.geometry`, world coordinates) with the updated estimate; look for
+unassociated features into tentative landmarks and add the ones confirmed now
+(:mod:`fgslam.slam.lifecycle`); commit; update the segment geometry
+(:mod:`fgslam.slam.geometry`, world coordinates) with the updated estimate; look for
 duplicates among the landmarks seen; count misses of landmarks predicted in view. With a
 :class:`fgslam.slam.loops.LoopCloser` and a backend that keeps past poses, verified loop
 closures of the keyframe's scan enter before the commit.
