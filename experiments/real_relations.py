@@ -25,6 +25,7 @@ from fgslam import dense, evaluation
 from fgslam.config import with_scanmatch
 from fgslam.readers import open_log
 from fgslam.readers.carmen import odometry_chain
+from fgslam.slam.outputs import ScanSample, laser_points
 from fgslam.slam.runner import run_backends
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
@@ -60,8 +61,45 @@ MODES = {  # the paper's pipeline (wheel odometry, every scan) and scan matching
 }
 
 
+def tap(events, sample: ScanSample):
+    for ev in events:
+        sample.add(ev)
+        yield ev
+
+
+def figure(folder: Path, name: str, mode: str, res, sample: ScanSample, cfg) -> None:
+    """The map as laser points placed with the reference poses (left, where the log has them)
+    and with the estimate (right): real_map_<log>_<mode>_<backend>.png."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    panels = []
+    if res.has_truth:
+        panels.append(("reference (GMapping) poses", res.truth_t, res.truth))
+    panels.append((f"{res.backend}, {mode}: estimate", *res.every_scan))
+    fig, axs = plt.subplots(1, len(panels), figsize=(7 * len(panels), 7), squeeze=False)
+    for ax, (title, t, poses) in zip(axs[0], panels, strict=True):
+        pts = laser_points(sample.scans, t, poses, cfg)
+        ax.plot(pts[:, 0], pts[:, 1], ".", ms=0.5, color="k", alpha=0.5)
+        ax.plot(poses[:, 0], poses[:, 1], "-", lw=0.6, color="tab:green")
+        ax.set_aspect("equal")
+        ax.set_title(title)
+    fig.suptitle(f"{name}: laser points placed with each trajectory")
+    fig.tight_layout()
+    folder.mkdir(parents=True, exist_ok=True)
+    fig.savefig(folder / f"real_map_{name}_{mode}_{res.backend}.png", dpi=90)
+    plt.close(fig)
+
+
 def run(
-    name: str, backends: list[str], max_scans: int | None, mode: str = "scan", header: bool = True
+    name: str,
+    backends: list[str],
+    max_scans: int | None,
+    mode: str = "scan",
+    header: bool = True,
+    figures: Path | None = None,
 ) -> None:
     log_file, rel_file = FILES[name]
     path, rel = DATA / log_file, dense.read_relations(DATA / rel_file)
@@ -72,8 +110,9 @@ def run(
     for group in [g for g in groups if g]:
         reader = open_log(path)
         cfg = with_scanmatch(reader.config, MODES[mode])
+        sample = ScanSample(max_scans=1500)
         t0 = time.perf_counter()
-        results = run_backends(limited(reader, max_scans), cfg, group, "laser")
+        results = run_backends(tap(limited(reader, max_scans), sample), cfg, group, "laser")
         wall = time.perf_counter() - t0
         for res in results:
             if first:  # odometry alone and the reference, on the same keyframes
@@ -93,6 +132,8 @@ def run(
             note = ""
             if "partial" in res.stats:
                 note = " (partial: " + str(res.stats["partial"]["error"])[:60] + ")"
+            if figures is not None:
+                figure(figures, name, mode, res, sample, cfg)
             loops = sum(c["accepted"] for c in res.loop_closures)
             print(
                 f"| {name} | {res.backend} ({mode}){note} | {fmt(m)} | {ate} | "
@@ -116,6 +157,9 @@ def main() -> None:
         help="wheels: the paper's pipeline (wheel odometry, every scan a keyframe, no loops); "
         "scan: scan matching, keyframes by motion, loop closures",
     )
+    ap.add_argument(
+        "--figures", type=Path, default=None, help="write real_map_*.png into this folder"
+    )
     args = ap.parse_args()
     print(
         "| log | estimate | relations trans (m): mean ± std (max) | rot (deg) | relations used "
@@ -124,7 +168,7 @@ def main() -> None:
     print("|---|---|---|---|---|---|---|---|---|---|")
     for name in args.logs:
         for i, mode in enumerate(args.modes):
-            run(name, args.backends, args.max_scans, mode, header=i == 0)
+            run(name, args.backends, args.max_scans, mode, header=i == 0, figures=args.figures)
 
 
 if __name__ == "__main__":
