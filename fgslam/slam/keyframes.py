@@ -4,7 +4,7 @@ Every laser scan is matched (:mod:`fgslam.scanmatch`) against the last keyframe'
 match started from the wheel odometry since the previous scan; that carries the pose forward
 between keyframes. A scan becomes a keyframe when the robot has moved ``distance`` or turned
 ``angle`` since the last keyframe, when its overlap with the keyframe's scan falls below
-``min_overlap``, or when the last keyframe matched too few of its features to the map (the
+``min_overlap``, or when the last keyframe tracked too few of its features in the map (the
 SLAM step reports that through :meth:`ScanOdometry.map_support`). With the policy
 ``every-scan`` (the paper's) every scan is a keyframe. At a keyframe the match against the
 previous keyframe is the scan constraint between the two (relative pose and covariance, GTSAM's
@@ -37,15 +37,17 @@ class KeyframeParams:
     ``odometry``: which relative-pose measurements link keyframes ("wheels", "scan", "both");
     ``distance`` (m), ``angle`` (rad): motion since the last keyframe that makes a new one;
     ``min_overlap``: a scan overlapping the keyframe's scan less than this is a keyframe;
-    ``min_map_support``: a keyframe whose features matched the map less than this fraction
-    makes the next scan a keyframe."""
+    ``min_tracked``: a keyframe with at least ``min_features`` features of which fewer than
+    this many went to landmarks already in the map (confirmed or tentative) makes the next
+    scan a keyframe, so that a new place's features are seen again soon."""
 
     policy: str = "motion"
     odometry: str = "both"
     distance: float = 0.5
     angle: float = math.radians(20.0)
     min_overlap: float = 0.6
-    min_map_support: float = 0.3
+    min_tracked: int = 2
+    min_features: int = 3
 
     def __post_init__(self) -> None:
         if self.policy not in POLICIES:
@@ -102,10 +104,10 @@ class ScanOdometry:
         self._started = False
         self.keyframe_points: NDArray[np.float64] | None = None
 
-    def map_support(self, fraction: float | None) -> None:
-        """The fraction of the last keyframe's features associated with the map (None: too
-        few features to judge)."""
-        self._low_support = fraction is not None and fraction < self.p.min_map_support
+    def map_support(self, features: int, tracked: int) -> None:
+        """How many features the last keyframe had and how many of them went to landmarks
+        already in the map."""
+        self._low_support = features >= self.p.min_features and tracked < self.p.min_tracked
 
     def add(self, points: NDArray[np.float64] | None, odom: NDArray[np.float64]) -> ScanStep:
         """One scan: its points (N, 2, robot frame; None or empty: no laser) and the wheel

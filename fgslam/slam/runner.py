@@ -290,7 +290,7 @@ class SlamPipeline:
         scan = step.scan if self.keyframe_params.odometry != "wheels" else None
         self._keyframe(sf, scan)
         sess = next(iter(self.sessions.values()))
-        self.scan_odometry.map_support(sess.map_support if len(sf.features) >= 3 else None)
+        self.scan_odometry.map_support(len(sf.features), sess.tracked)
 
     def _keyframe(self, sf, scan=None) -> None:
         o = self.cfg.odometry

@@ -44,7 +44,9 @@ class SlamStep:
     ) -> None:
         self.be = backend
         self.loops = loops if backend.supports_loops else None
-        self.map_support = 1.0  # fraction of the last keyframe's features on landmarks
+        # how many of the last keyframe's features went to landmarks (confirmed or tentative)
+        # older than that keyframe: how well the map tracks the scan
+        self.tracked = 0
         self.p = params or MapParams()
         self.assoc = self.p.association_params()
         self.map = Lifecycle(self.p)
@@ -98,6 +100,7 @@ class SlamStep:
         self._pending_merges = []
         pose = be.pose()
         self._compatible: set[int] = set()
+        known = set(lc.landmarks)
         if given is not None:
             where = self._keyframe_given(t, features, given)
         else:
@@ -123,7 +126,7 @@ class SlamStep:
                 self._update_geometry(lid, f, pose, means.get(lid))
             else:  # tentative: geometry on its own estimate
                 self._update_geometry(lid, f, pose, lm.mean)
-        self.map_support = len(seen) / len(features) if features else 1.0
+        self.tracked = sum(1 for lid in where if lid is not None and lid in known)
         if given is None:
             lc.expire(self.k)
             query = seen | {lc.resolve(i) for i in self._compatible}
