@@ -16,6 +16,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections import Counter, deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -49,6 +50,7 @@ from fgslam.frontend.sonar import (
     remove_phantoms,
     to_laser_frame,
 )
+from fgslam.scanmatch import scan_points
 
 MODES = ("fused", "laser", "sonar")
 CHI2_2_99 = 9.21
@@ -95,11 +97,20 @@ class FrontEnd:
     return value and from :meth:`finish` at the end of the data."""
 
     def __init__(
-        self, cfg: RobotConfig, mode: str = "fused", params: FrontEndParams | None = None
+        self,
+        cfg: RobotConfig,
+        mode: str = "fused",
+        params: FrontEndParams | None = None,
+        select: Callable[[float, NDArray[np.float64] | None, NDArray[np.float64]], bool]
+        | None = None,
     ) -> None:
+        """``select(t, points, odom)``, if given, is asked for every scan in time order (its
+        robot-frame points and odometry pose, as in :class:`ScanFeatures`) whether its
+        features are wanted (a keyframe); a scan it declines comes out without features."""
         if mode not in MODES:
             raise ValueError(f"unknown front-end mode {mode!r}; expected one of {MODES}")
         self.cfg, self.mode = cfg, mode
+        self.select = select
         self.p = params or frontend_params(cfg)
         self.odo = OdometryIntegrator(cfg.odometry.params(), covariance=False)
         self.poses = PoseHistory(keep=4 * self.p.window)
@@ -191,6 +202,10 @@ class FrontEnd:
         r[bad] = np.nan
         use_laser = self.mode != "sonar"
         use_sonar = self.mode != "laser"
+        points = scan_points(r, phi, self.mount, self.cfg.laser.max_range) if use_laser else None
+        odom = self.poses.at(t)
+        if self.select is not None and not self.select(t, points, odom):
+            return ScanFeatures(t, [], stats, points, odom)
         pts, clusters = self._sonar_points(t, phi, r, use_laser, stats) if use_sonar else (None, [])
         near = dist = None
         if use_laser and use_sonar:
@@ -221,15 +236,7 @@ class FrontEnd:
         feats = [self._to_robot(f) for f in feats]
         for k in ("line", "corner", "point"):
             stats[f"{k}s"] = sum(f.kind == k for f in feats)
-        points = None
-        if use_laser:
-            ok = np.isfinite(r) & (r <= self.cfg.laser.max_range)
-            c, s = math.cos(self.mount[2]), math.sin(self.mount[2])
-            xl, yl = r[ok] * np.cos(phi[ok]), r[ok] * np.sin(phi[ok])
-            points = np.column_stack(
-                [self.mount[0] + c * xl - s * yl, self.mount[1] + s * xl + c * yl]
-            )
-        return ScanFeatures(t, feats, stats, points, self.poses.at(t))
+        return ScanFeatures(t, feats, stats, points, odom)
 
     # ------------------------------------------------------------------ sonar
 

@@ -217,7 +217,8 @@ class SlamPipeline:
                 loop = LoopCloser(lp, mp) if lp.enabled else None
                 self.sessions["graph"] = _Session("isam2", map_params, loop)
         self.reorder = ReorderBuffer(reorder_window)
-        self.frontend = FrontEnd(cfg, sensors)
+        self.frontend = FrontEnd(cfg, sensors, select=self._select)
+        self._steps: deque = deque()  # the scan odometry's decisions, in scan order
         o = cfg.odometry
         self._odo_params = o.params()
         self._samples: deque[tuple[float, float, float]] = deque()
@@ -278,11 +279,17 @@ class SlamPipeline:
             self.progress(ev.t)
         return len(out)
 
+    def _select(self, t: float, points, odom) -> bool:
+        """The front end asks, scan by scan in time order, whether to extract features: the
+        scan odometry decides whether the scan is a keyframe (in fused mode a few scans may
+        be decided before the last keyframe's map support is known)."""
+        step = self.scan_odometry.add(points, odom)
+        self._steps.append(step)
+        return step.keyframe
+
     def _scan(self, sf) -> None:
         """One front-end output: a keyframe, or a scan carried by its keyframe."""
-        if sf.odom is None:
-            sf.odom = np.zeros(3)
-        step = self.scan_odometry.add(sf.points, sf.odom)
+        step = self._steps.popleft()
         if not step.keyframe:
             self._between.append((sf.t, len(self.kf_times) - 1, step.rel))
             self.stats["scans_between_keyframes"] += 1
