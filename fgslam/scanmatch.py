@@ -63,6 +63,7 @@ class MatchParams:
     voxel: float = 0.0  # query voxel filter for the search (m); 0: resolution
     link_distance: float = 0.3  # reference neighbours closer than this are joined (m)
     max_candidates: int = 3000  # most branch-and-bound nodes kept per level
+    max_cells: int = 16_000_000  # largest likelihood grid; a wider reference gets coarser cells
     mode_nats: float = 7.0  # response poses within this log-likelihood of the best are kept
     min_coverage: float = 0.3  # fewer query points in the reference's view: search with all
     response_gain: float = 3.0  # nats per point per unit of score in the response weights
@@ -204,7 +205,11 @@ class Reference:
         self.points = p
         self.n_points = len(p)
         self.resolution = params.resolution
-        self._blur = _blur(params)
+        if len(p):
+            area = float(np.prod(np.ptp(p, axis=0) + 2.0))
+            # an absurd extent (a map of kilometres) gets coarser cells, not a huge grid
+            self.resolution = max(self.resolution, math.sqrt(area / params.max_cells))
+        self._blur = max(_blur(params), self.resolution)
         self.normals = np.full((len(p), 2), np.nan)
         self.tree = cKDTree(p) if len(p) else None
         self.anchors = p.copy()
@@ -258,18 +263,30 @@ class Reference:
 
     def _pyramid(
         self, ix: NDArray[np.int64], iy: NDArray[np.int64], n: int, top: int
-    ) -> tuple[list[NDArray[np.uint8]], int, int, int]:
+    ) -> tuple[list[NDArray[np.uint8]], NDArray[np.int64], int]:
         """Grids max-pooled over 1, 2, 4, .., ``top`` cells (level l: max of grid[i:i+2^l,
-        j:j+2^l]) over the cells that query points (grid cells ``ix``, ``iy``) reach at
-        offsets -n .. n + top: raveled, with the crop's column count and first cell."""
-        x0, y0 = int(ix.min()) - n - 1, int(iy.min()) - n - 1
-        x1, y1 = int(ix.max()) + n + 2 * top + 2, int(iy.max()) + n + 2 * top + 2
-        crop = np.zeros((x1 - x0, y1 - y0), dtype=np.uint8)
+        j:j+2^l]), raveled, over the part of the grid that query points (grid cells ``ix``,
+        ``iy``) reach at offsets -n .. n + top, and each point's index into them. A point
+        that reaches no cell of the grid looks up the middle of a zero block after it.
+        Returns the levels, the indices and the crop's row length."""
         gx, gy = self.grid.shape
+        reach = n + top + 1
+        x0 = max(int(ix.min()) - n - 1, -2 * reach)
+        y0 = max(int(iy.min()) - n - 1, -2 * reach)
+        x1 = min(int(ix.max()) + n + 2 * top + 2, gx + 2 * reach)
+        y1 = min(int(iy.max()) + n + 2 * top + 2, gy + 2 * reach)
+        x1, y1 = max(x1, x0 + 1), max(y1, y0 + 1)
+        tail = 2 * reach + 3  # zero rows after the crop
+        crop = np.zeros((x1 - x0 + tail, y1 - y0), dtype=np.uint8)
         a0, a1, b0, b1 = max(x0, 0), min(x1, gx), max(y0, 0), min(y1, gy)
         if a0 < a1 and b0 < b1:
             crop[a0 - x0 : a1 - x0, b0 - y0 : b1 - y0] = self.grid[a0:a1, b0:b1]
-        return [lv.ravel() for lv in _pool(crop, top, np.maximum)], crop.shape[1], x0, y0
+        ny = crop.shape[1]
+        hits = (ix >= -reach) & (ix <= gx + reach) & (iy >= -reach) & (iy <= gy + reach)
+        hits &= (ix - n > x0) & (ix + n + 2 * top < x1) & (iy - n > y0) & (iy + n + 2 * top < y1)
+        nowhere = (x1 - x0 + tail // 2) * ny + ny // 2
+        base = np.where(hits, (ix - x0) * ny + (iy - y0), nowhere)
+        return [lv.ravel() for lv in _pool(crop, top, np.maximum)], base, ny
 
     def covered(
         self, points: ArrayLike, margin_theta: float = 0.0, margin_xy: float = 0.0
@@ -442,8 +459,7 @@ def _search(ref: Reference, q: NDArray, guess: NDArray, params: MatchParams) -> 
     py = s[:, None] * q[None, :, 0] + c[:, None] * q[None, :, 1] + guess[1]
     ix = np.floor((px - ref.origin[0]) / res).astype(np.int64)
     iy = np.floor((py - ref.origin[1]) / res).astype(np.int64)
-    flats, ny, x0, y0 = ref._pyramid(ix, iy, n, top)
-    base = (ix - x0) * ny + (iy - y0)
+    flats, base, ny = ref._pyramid(ix, iy, n, top)
     npts = q.shape[0]
 
     def evaluate(level: int, r: NDArray, dx: NDArray, dy: NDArray) -> NDArray:
