@@ -81,8 +81,8 @@ class MatchParams:
     cov_inflation: float = 1.3  # constant factor on top of the measured per-axis inflation
     # rejection
     min_points: int = 20  # fewer query or reference points: rejected
-    min_score: float = 0.35  # correlative score below: rejected
-    min_overlap: float = 0.4  # inlier fraction below: rejected
+    min_score: float = 0.5  # correlative score below: rejected
+    min_overlap: float = 0.25  # inlier fraction below: rejected
     max_ambiguity: float = 0.5  # 1-sigma extent / window half-width above: rejected
 
     @classmethod
