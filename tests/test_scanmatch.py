@@ -1,0 +1,319 @@
+"""Laser scan matcher (fgslam.scanmatch): accuracy, covariance convention and consistency,
+degenerate scenes, rejection, real scans, robustness to bad input."""
+
+from __future__ import annotations
+
+import gzip
+import math
+from pathlib import Path
+
+import gtsam
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from factors.odometry import to_between_covariance
+from fgslam.config import load_config
+from fgslam.scanmatch import Match, MatchParams, Reference, match, scan_points
+from fgslam.sim.raycast import raycast
+from fgslam.sim.sensors import SimParams, laser_scan
+from fgslam.sim.world import load_world
+
+CFG = load_config()
+LASER = CFG.laser
+MOUNT = (LASER.mount.x, LASER.mount.y, math.radians(LASER.mount.yaw_deg))
+WORLD = load_world("corridor")
+PARAMS = MatchParams.for_laser(LASER.sigma_range, math.radians(0.5), LASER.max_range)
+INTEL = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "intel-corrected.log.gz"
+
+
+def compose(a, b) -> np.ndarray:
+    c, s = math.cos(a[2]), math.sin(a[2])
+    return np.array(
+        [
+            a[0] + c * b[0] - s * b[1],
+            a[1] + s * b[0] + c * b[1],
+            math.remainder(a[2] + b[2], 2 * math.pi),
+        ]
+    )
+
+
+def between(a, b) -> np.ndarray:
+    c, s = math.cos(a[2]), math.sin(a[2])
+    dx, dy = b[0] - a[0], b[1] - a[1]
+    return np.array([c * dx + s * dy, -s * dx + c * dy, math.remainder(b[2] - a[2], 2 * math.pi)])
+
+
+def body_error(est, truth) -> np.ndarray:
+    """GTSAM's between-factor error: Logmap(est^-1 * truth), tangent at est."""
+    return gtsam.Pose2.Logmap(gtsam.Pose2(*est).between(gtsam.Pose2(*truth)))
+
+
+def sim_points(pose, rng) -> np.ndarray:
+    """Robot-frame points of a simulated SICK PLS scan (true noise, quantisation, mixed
+    pixels, systematic error) from robot ``pose`` in the built-in corridor world."""
+    r = laser_scan(WORLD, LASER, SimParams(), tuple(compose(pose, MOUNT)), -1000.0, rng)
+    return scan_points(r, LASER.bearings, MOUNT, LASER.max_range)
+
+
+def free_pose(rng, where: str) -> np.ndarray:
+    while True:
+        if where == "lab":
+            p = np.array([rng.uniform(0.6, 9.4), rng.uniform(0.6, 6.4), rng.uniform(-3.1, 3.1)])
+        else:
+            p = np.array([rng.uniform(-24, 34), rng.uniform(7.6, 8.8), rng.uniform(-3.1, 3.1)])
+        if WORLD.clearance(p[None, :2])[0] > 0.4:
+            return p
+
+
+def sim_pair(rng, where: str):
+    """Reference and query scans, the true relative pose and a guess off by ~10 cm, ~3 deg."""
+    a = free_pose(rng, where)
+    while True:
+        d = np.array([rng.uniform(-0.3, 0.3), rng.uniform(-0.2, 0.2), rng.uniform(-0.15, 0.15)])
+        if WORLD.clearance(compose(a, d)[None, :2])[0] > 0.3:
+            break
+    guess = d + np.array([rng.normal(0, 0.1), rng.normal(0, 0.1), rng.normal(0, 0.05)])
+    return sim_points(a, rng), sim_points(compose(a, d), rng), d, guess
+
+
+def segment_scan(segs, pose, rng, sigma=0.01, n=361, fov=math.pi) -> np.ndarray:
+    """Points (robot frame, laser at the origin) of a scan of line segments, Gaussian noise."""
+    b = np.linspace(-fov / 2, fov / 2, n)
+    r = raycast((pose[0], pose[1]), pose[2] + b, np.asarray(segs, dtype=float))
+    r = r + rng.normal(0.0, sigma, r.size)
+    return scan_points(r, b, max_range=30.0)
+
+
+# ------------------------------------------------------------------ basics
+
+
+def test_scan_points_mount_and_filtering():
+    r = np.array([1.0, np.nan, np.inf, 0.0, -1.0, 2.0, 40.0])
+    b = np.radians([0.0, 10.0, 20.0, 30.0, 40.0, 90.0, 0.0])
+    p = scan_points(r, b, mount=(0.5, 0.1, math.pi / 2), max_range=30.0)
+    # kept: beams 0 and 5 in order; the laser is turned left by 90 deg and sits at (0.5, 0.1)
+    np.testing.assert_allclose(p, [[0.5, 1.1], [-1.5, 0.1]], atol=1e-12)
+    assert scan_points([], []).shape == (0, 2)
+
+
+def test_for_laser_derives_from_the_sensor():
+    p = MatchParams.for_laser(0.02, math.radians(1.0), 20.0, search_xy=1.0)
+    assert p.sigma_range == 0.02 and p.max_range == 20.0 and p.search_xy == 1.0
+    assert p.resolution >= 2 * 0.02 - 1e-12
+    assert p.corr_distance >= 10 * math.radians(1.0)
+
+
+# ------------------------------------------------------------------ accuracy
+
+
+@pytest.mark.parametrize("where, seed", [("lab", 1), ("lab", 2), ("corridor", 3)])
+def test_recovers_known_transform_from_a_poor_guess(where, seed):
+    rng = np.random.default_rng(seed)
+    a = free_pose(rng, where)
+    if where == "corridor":
+        a[2] = 0.3  # looking along the corridor, towards doors and the alcove
+    d = np.array([0.25, -0.1, 0.12])
+    guess = d + np.array([0.2, -0.15, math.radians(6.0)])  # tens of cm, several degrees off
+    ref = Reference.build(sim_points(a, rng), PARAMS, origins=MOUNT[:2])
+    m = match(ref, sim_points(compose(a, d), rng), guess, PARAMS)
+    e = body_error(m.pose, d)
+    assert m.ok, m.reason
+    sd = np.sqrt(np.diag(m.cov))
+    # accurate where the scene constrains the pose, never confidently wrong where it does not
+    assert np.all((np.abs(e[:2]) < 0.02) | (np.abs(e[:2]) < 3 * sd[:2])), (e, sd)
+    assert abs(e[2]) < math.radians(0.5)
+    assert 0.0 <= m.score <= 1.0 and 0.0 <= m.overlap <= 1.0 and m.rms < 0.05
+
+
+def test_loop_closure_window_on_a_local_map():
+    """A local map of three keyframes, a guess 1.2 m and 0.35 rad off, a 2 m / 0.5 rad window."""
+    rng = np.random.default_rng(7)
+    base = np.array([3.0, 3.0, 0.4])
+    pts, origins = [], []
+    for k in range(3):
+        rel = np.array([0.4 * k, 0.1 * k, -0.2 * k])
+        q = sim_points(compose(base, rel), rng)
+        c, s = math.cos(rel[2]), math.sin(rel[2])
+        pts.append(q @ np.array([[c, s], [-s, c]]) + rel[:2])
+        origins.append(np.repeat([compose(rel, MOUNT)[:2]], len(q), axis=0))
+    params = MatchParams.for_laser(
+        LASER.sigma_range, math.radians(0.5), LASER.max_range, search_xy=2.0, search_theta=0.5
+    )
+    ref = Reference.build(np.vstack(pts), params, origins=np.vstack(origins))
+    truth = np.array([1.5, 0.6, 0.9])
+    m = match(
+        ref, sim_points(compose(base, truth), rng), truth + np.array([1.2, -0.9, -0.35]), params
+    )
+    assert m.ok, m.reason
+    e = body_error(m.pose, truth)
+    assert np.hypot(e[0], e[1]) < 0.03 and abs(e[2]) < math.radians(0.5)
+
+
+# ------------------------------------------------------------------ covariance
+
+
+def test_cov_is_cov_ref_rotated_into_the_query_body_frame():
+    rng = np.random.default_rng(4)
+    ref_pts, q, _, guess = sim_pair(rng, "lab")
+    m = match(Reference.build(ref_pts, PARAMS, origins=MOUNT[:2]), q, guess, PARAMS)
+    np.testing.assert_allclose(m.cov, to_between_covariance(m.cov_ref, m.pose[2]), atol=1e-12)
+    assert np.all(np.linalg.eigvalsh(m.cov) > 0)
+
+
+def test_cov_convention_monte_carlo_in_an_anisotropic_scene():
+    """A corridor along the reference's x axis, seen by a query turned by 0.7 rad: the error
+    is large along the corridor. Over noise draws, GTSAM's between error (body frame of the
+    query) is consistent with ``cov``, not with ``cov_ref`` read as if it were that."""
+    rng = np.random.default_rng(5)
+    walls = [[-10, -1, 10, -1], [-10, 1, 10, 1], [4, -1, 4, -0.6], [4, -0.6, 4.3, -0.6]]
+    walls += [[4.3, -0.6, 4.3, -1], [-3, 1, -3, 0.7], [-3, 0.7, -3.4, 0.7], [-3.4, 0.7, -3.4, 1]]
+    truth = np.array([0.3, 0.2, 0.7])
+    params = MatchParams(sigma_range=0.01, search_xy=0.3, search_theta=0.25)
+    right, wrong = [], []
+    for _ in range(30):
+        ref = Reference.build(segment_scan(walls, np.zeros(3), rng), params, origins=(0, 0))
+        q = segment_scan(walls, truth, rng)
+        m = match(ref, q, truth + rng.normal(0, [0.05, 0.05, 0.02]), params)
+        e = body_error(m.pose, truth)
+        right.append(e @ np.linalg.solve(m.cov, e))
+        wrong.append(e @ np.linalg.solve(m.cov_ref, e))
+    ev, V = np.linalg.eigh(m.cov[:2, :2])
+    assert ev[1] > 9 * ev[0]  # anisotropic
+    # long axis: the corridor's direction in the query's body frame, -0.7 rad (mod pi)
+    assert abs(math.sin(math.atan2(V[1, 1], V[0, 1]) + 0.7)) < 0.2
+    assert 1.0 < np.mean(right) < 6.0, np.mean(right)
+    assert np.mean(wrong) > 2 * np.mean(right)
+
+
+def test_nees_monte_carlo_on_simulated_scans():
+    """Random poses in the lab and the corridor, simulated PLS scans with their true errors
+    (5 cm quantisation, systematic range error, mixed pixels): mean NEES near 3."""
+    rng = np.random.default_rng(11)
+    nees = []
+    for k in range(24):
+        ref_pts, q, d, guess = sim_pair(rng, "lab" if k % 2 else "corridor")
+        m = match(Reference.build(ref_pts, PARAMS, origins=MOUNT[:2]), q, guess, PARAMS)
+        e = body_error(m.pose, d)
+        nees.append(float(e @ np.linalg.solve(m.cov, e)))
+    nees = np.array(nees)
+    assert 1.0 < nees.mean() < 6.0, nees
+    assert np.mean(nees < 7.81) > 0.8, nees
+
+
+def test_featureless_corridor_large_along_small_across():
+    """Two long parallel walls and nothing else: along them the scan says nothing."""
+    rng = np.random.default_rng(6)
+    walls = [[-30, -1, 30, -1], [-30, 1, 30, 1]]
+    truth = np.array([0.2, 0.05, 0.03])
+    params = MatchParams(sigma_range=0.01)
+    ref = Reference.build(segment_scan(walls, np.zeros(3), rng), params, origins=(0, 0))
+    m = match(ref, segment_scan(walls, truth, rng), np.array([0.0, 0.0, 0.0]), params)
+    sd = np.sqrt(np.diag(m.cov_ref))
+    assert sd[0] > 0.08 and sd[1] < 0.02 and sd[0] > 10 * sd[1], sd
+    e = m.pose - truth
+    assert abs(e[1]) < 0.02 and abs(e[2]) < 0.01
+    assert abs(e[0]) < 3 * sd[0]  # along: not confidently wrong
+    assert not m.ok and "ambiguous" in m.reason
+
+
+# ------------------------------------------------------------------ rejection
+
+
+def test_rejects_a_query_from_a_different_place():
+    rng = np.random.default_rng(8)
+    ref = Reference.build(sim_points(np.array([5.0, 3.5, 0.3]), rng), PARAMS, origins=MOUNT[:2])
+    q = sim_points(np.array([20.0, 8.2, 2.9]), rng)  # in the corridor, far from the lab
+    m = match(ref, q, np.zeros(3), PARAMS)
+    assert not m.ok and m.reason
+
+
+def test_too_few_points():
+    rng = np.random.default_rng(9)
+    pts = sim_points(np.array([5.0, 3.5, 0.3]), rng)
+    ref = Reference.build(pts, PARAMS)
+    m = match(ref, pts[:5], np.zeros(3), PARAMS)
+    assert not m.ok and "too few" in m.reason
+    assert m.pose.shape == (3,) and m.cov.shape == (3, 3)
+    m = match(Reference.build(pts[:4], PARAMS), pts, np.zeros(3), PARAMS)
+    assert not m.ok and "too few" in m.reason
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    n_ref=st.integers(0, 60),
+    n_q=st.integers(0, 60),
+    scale=st.sampled_from([0.0, 1e-3, 1.0, 10.0, 1e4]),
+    nan_frac=st.floats(0.0, 1.0),
+    guess=st.lists(
+        st.one_of(st.floats(-1e3, 1e3), st.just(math.nan), st.just(math.inf)),
+        min_size=0,
+        max_size=4,
+    ),
+    seed=st.integers(0, 2**16),
+)
+def test_match_never_raises(n_ref, n_q, scale, nan_frac, guess, seed):
+    rng = np.random.default_rng(seed)
+
+    def pts(n):
+        p = rng.normal(0.0, 1.0, (n, 2)) * scale
+        p[rng.random((n, 2)) < nan_frac * 0.5] = np.nan
+        return p
+
+    params = MatchParams(min_points=5)
+    ref = Reference.build(pts(n_ref), params, origins=(0.0, 0.0))
+    m = match(ref, pts(n_q), np.array(guess), params)
+    assert isinstance(m, Match) and m.pose.shape == (3,) and m.cov.shape == (3, 3)
+    assert m.ok == (m.reason == "")
+
+
+# ------------------------------------------------------------------ real scans
+
+
+def read_corrected(path: Path, limit: int):
+    """Ranges (NaN = no return), corrected poses, and the raw odometry increment before each
+    scan (inverse(P_{k-1}) * last ODOM before scan k, as data/README.md describes)."""
+    ranges, poses, odo = [], [], []
+    before = prev = None
+    with gzip.open(path, "rt") as f:
+        for line in f:
+            t = line.split()
+            if t and t[0] == "ODOM" and float(t[7]) != 0.0:
+                before = tuple(map(float, t[1:4]))
+            elif t and t[0] == "FLASER":
+                n = int(t[1])
+                v = np.array(t[2 : n + 5], dtype=float)
+                r = v[:n].copy()
+                r[r >= 80.0] = np.nan
+                ranges.append(r)
+                poses.append(v[n : n + 3])
+                ok = prev is not None and before is not None
+                odo.append(between(prev, before) if ok else None)
+                prev, before = v[n : n + 3], None
+                if len(ranges) >= limit:
+                    break
+    return ranges, poses, odo
+
+
+@pytest.mark.skipif(not INTEL.exists(), reason="shared Intel log absent")
+def test_real_consecutive_intel_scans_agree_with_reference_poses():
+    ranges, poses, odo = read_corrected(INTEL, 151)
+    n = len(ranges[0])
+    bearings = np.linspace(-math.pi / 2, math.pi / 2, n)
+    params = MatchParams.for_laser(0.01, math.pi / (n - 1), 30.0)
+    pts = [scan_points(r, bearings, max_range=params.max_range) for r in ranges]
+    good, ok, tried = 0, 0, 0
+    for k in range(1, len(pts)):
+        if odo[k] is None:
+            continue
+        tried += 1
+        m = match(Reference.build(pts[k - 1], params, origins=(0.0, 0.0)), pts[k], odo[k], params)
+        if not m.ok:
+            continue
+        ok += 1
+        e = m.pose - between(poses[k - 1], poses[k])
+        good += np.hypot(e[0], e[1]) < 0.05 and abs(math.remainder(e[2], 2 * math.pi)) < 0.02
+    assert tried >= 140
+    assert ok >= 0.6 * tried, (ok, tried)
+    assert good >= 0.75 * ok, (good, ok)
