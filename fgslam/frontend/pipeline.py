@@ -101,12 +101,12 @@ class FrontEnd:
         cfg: RobotConfig,
         mode: str = "fused",
         params: FrontEndParams | None = None,
-        select: Callable[[float, NDArray[np.float64] | None, NDArray[np.float64]], bool]
-        | None = None,
+        select: Callable[..., bool] | None = None,
     ) -> None:
-        """``select(t, points, odom)``, if given, is asked for every scan in time order (its
-        robot-frame points and odometry pose, as in :class:`ScanFeatures`) whether its
-        features are wanted (a keyframe); a scan it declines comes out without features."""
+        """``select(t, points, odom, v, w)``, if given, is asked for every scan in time order
+        (its robot-frame points and odometry pose, as in :class:`ScanFeatures`, and the
+        robot's speed in m/s and turn rate in rad/s) whether its features are wanted (a
+        keyframe); a scan it declines comes out without features."""
         if mode not in MODES:
             raise ValueError(f"unknown front-end mode {mode!r}; expected one of {MODES}")
         self.cfg, self.mode = cfg, mode
@@ -204,7 +204,7 @@ class FrontEnd:
         use_sonar = self.mode != "laser"
         points = scan_points(r, phi, self.mount, self.cfg.laser.max_range) if use_laser else None
         odom = self.poses.at(t)
-        if self.select is not None and not self.select(t, points, odom):
+        if self.select is not None and not self.select(t, points, odom, v, w):
             return ScanFeatures(t, [], stats, points, odom)
         pts, clusters = self._sonar_points(t, phi, r, use_laser, stats) if use_sonar else (None, [])
         near = dist = None

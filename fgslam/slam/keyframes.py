@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 
 from factors.geometry import wrap_angle
 from factors.odometry import Preintegrated, relative_pose
+from factors.sensor_models import time_registration_inflation
 from fgslam.scanmatch import Match, MatchParams, Reference, match
 
 POLICIES = ("motion", "every-scan")
@@ -45,7 +46,7 @@ class KeyframeParams:
     odometry: str = "both"
     distance: float = 0.5
     angle: float = math.radians(20.0)
-    min_overlap: float = 0.6
+    min_overlap: float = 0.35
     min_tracked: int = 2
     min_features: int = 3
 
@@ -72,6 +73,26 @@ class ScanStep:
     rel: NDArray[np.float64]
     scan: Preintegrated | None = None
     match: Match | None = None
+    speed: tuple[float, float] = (0.0, 0.0)  # the robot's (m/s, rad/s) at the scan
+
+
+def timing_inflation(
+    cov: NDArray[np.float64],
+    speed_a: tuple[float, float],
+    speed_b: tuple[float, float],
+    sigma_time: float,
+) -> NDArray[np.float64]:
+    """A scan match's covariance (x, y, theta) with the time registration of both scans
+    (DESIGN 3.4): (v sigma_t)^2 and (omega sigma_t)^2 of each, (v, omega) in m/s, rad/s."""
+    (v0, w0), (v1, w1) = speed_a, speed_b
+    return time_registration_inflation(
+        cov, (False, False, True), math.hypot(v0, v1), math.hypot(w0, w1), sigma_time
+    )
+
+
+def _key(reason: str) -> str:
+    """A rejection reason as a statistics key: its words, without the numbers in brackets."""
+    return reason.split(" (")[0].strip().replace(" ", "_")
 
 
 def _between(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -93,9 +114,22 @@ class ScanOdometry:
     pose at the scan's time); see the module doc. ``stats`` counts matches, rejections and
     the reasons of keyframes."""
 
-    def __init__(self, params: KeyframeParams, match_params: MatchParams) -> None:
+    def __init__(
+        self,
+        params: KeyframeParams,
+        match_params: MatchParams,
+        origin: tuple[float, float] = (0.0, 0.0),
+        sigma_time: float = 0.0,
+    ) -> None:
+        """``origin``: the laser's position on the robot (m, robot frame), whence the
+        scans' points were seen; ``sigma_time`` (s): the uncertainty of a scan's time
+        (DESIGN 3.4), which inflates a keyframe-to-keyframe match by the robot's motion at
+        both scans."""
         self.p = params
         self.mp = match_params
+        self.origin = origin
+        self.sigma_time = sigma_time
+        self._ref_speed = (0.0, 0.0)
         self.stats: Counter = Counter()
         self._ref: Reference | None = None
         self._rel = np.zeros(3)  # the last scan's pose in the keyframe's frame
@@ -109,9 +143,15 @@ class ScanOdometry:
         already in the map."""
         self._low_support = features >= self.p.min_features and tracked < self.p.min_tracked
 
-    def add(self, points: NDArray[np.float64] | None, odom: NDArray[np.float64]) -> ScanStep:
-        """One scan: its points (N, 2, robot frame; None or empty: no laser) and the wheel
-        odometry pose at its time (odometry frame)."""
+    def add(
+        self,
+        points: NDArray[np.float64] | None,
+        odom: NDArray[np.float64],
+        speed: tuple[float, float] = (0.0, 0.0),
+    ) -> ScanStep:
+        """One scan: its points (N, 2, robot frame; None or empty: no laser), the wheel
+        odometry pose at its time (odometry frame) and the robot's (speed m/s, turn rate
+        rad/s) then."""
         odom = np.asarray(odom, dtype=float)
         wheel = np.zeros(3) if self._odom_prev is None else _between(self._odom_prev, odom)
         self._odom_prev = odom
@@ -127,20 +167,24 @@ class ScanOdometry:
                 guess = np.asarray(m.pose, dtype=float)
             else:
                 self.stats["scan_matches_rejected"] += 1
-                self.stats[f"scan_rejected_{m.reason.replace(' ', '_')}"] += 1
+                self.stats[f"scan_rejected_{_key(m.reason)}"] += 1
         self._rel = guess
         reason = self._keyframe_reason(first, m)
         if reason is None:
-            return ScanStep(False, guess.copy(), None, m)
+            return ScanStep(False, guess.copy(), None, m, speed)
         self.stats[f"keyframes_{reason}"] += 1
         scan = None
         if m is not None and m.ok:
-            scan = relative_pose(m.pose, m.cov)
-        self._ref = Reference.build(points, self.mp) if self.p.matching and usable else None
+            cov = timing_inflation(m.cov, self._ref_speed, speed, self.sigma_time)
+            scan = relative_pose(m.pose, cov)
+        self._ref_speed = speed
+        self._ref = None
+        if self.p.matching and usable:
+            self._ref = Reference.build(points, self.mp, self.origin)
         self.keyframe_points = points if usable else None
         self._rel = np.zeros(3)
         self._low_support = False
-        return ScanStep(True, guess.copy(), scan, m)
+        return ScanStep(True, guess.copy(), scan, m, speed)
 
     def _keyframe_reason(self, first: bool, m: Match | None) -> str | None:
         p = self.p

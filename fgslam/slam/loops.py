@@ -31,6 +31,7 @@ from scipy.stats import chi2
 
 from factors.odometry import relative_pose
 from fgslam.scanmatch import MatchParams, Reference, match
+from fgslam.slam.keyframes import _key, timing_inflation
 
 
 @dataclass(frozen=True)
@@ -47,8 +48,8 @@ class LoopParams:
     min_search_xy: float = 0.3
     max_search_theta: float = math.radians(30.0)
     min_search_theta: float = math.radians(5.0)
-    min_score: float = 0.5
-    min_overlap: float = 0.45
+    min_score: float = 0.55
+    min_overlap: float = 0.35
     gate_p: float = 0.999
     see_through_margin: float = 0.3
     max_see_through: float = 0.05
@@ -132,9 +133,21 @@ def see_through(query: NDArray[np.float64], ref: NDArray[np.float64], pose, marg
 class LoopCloser:
     """Keeps every keyframe's scan and proposes verified closures (module doc)."""
 
-    def __init__(self, params: LoopParams, match_params: MatchParams) -> None:
+    def __init__(
+        self,
+        params: LoopParams,
+        match_params: MatchParams,
+        origin: tuple[float, float] = (0.0, 0.0),
+        sigma_time: float = 0.0,
+    ) -> None:
+        """``origin``: the laser's position on the robot (m, robot frame); ``sigma_time``
+        (s): a scan's time uncertainty, which inflates a closure by the motion at both
+        keyframes (:func:`fgslam.slam.keyframes.timing_inflation`)."""
+        self.sigma_time = sigma_time
+        self.speeds: dict[int, tuple[float, float]] = {}
         self.p = params
         self.mp = match_params
+        self.origin = np.asarray(origin, dtype=float).reshape(1, 2)
         self.scans: dict[int, NDArray[np.float64]] = {}
         self.path: list[float] = []  # path length (m) at each keyframe, from its estimate
         self._last_pos: NDArray[np.float64] | None = None
@@ -142,8 +155,16 @@ class LoopCloser:
         self.stats: Counter = Counter()
         self._gate = float(chi2.ppf(params.gate_p, 3))
 
-    def add_keyframe(self, k: int, points: NDArray[np.float64] | None, pose) -> None:
-        """Keyframe ``k``'s scan (robot frame; None: no laser) and its predicted pose."""
+    def add_keyframe(
+        self,
+        k: int,
+        points: NDArray[np.float64] | None,
+        pose,
+        speed: tuple[float, float] = (0.0, 0.0),
+    ) -> None:
+        """Keyframe ``k``'s scan (robot frame; None: no laser), its predicted pose and the
+        robot's (speed m/s, turn rate rad/s) at it."""
+        self.speeds[k] = speed
         pos = np.asarray(pose[:2], dtype=float)
         step = 0.0 if self._last_pos is None else float(np.hypot(*(pos - self._last_pos)))
         self._last_pos = pos
@@ -171,13 +192,18 @@ class LoopCloser:
                 break
         return out
 
-    def local_map(self, j: int, poses: NDArray[np.float64]) -> NDArray[np.float64]:
-        """Keyframe ``j``'s scan and its neighbours', in ``j``'s frame."""
-        parts = []
+    def local_map(
+        self, j: int, poses: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Keyframe ``j``'s scan and its neighbours', in ``j``'s frame, and for each point the
+        position of the laser that saw it."""
+        parts, origins = [], []
         for i in range(j - self.p.neighbours, j + self.p.neighbours + 1):
             if i in self.scans and i < len(poses):
-                parts.append(_place(_in_frame(poses[j], poses[i]), self.scans[i]))
-        return np.vstack(parts)
+                rel = _in_frame(poses[j], poses[i])
+                parts.append(_place(rel, self.scans[i]))
+                origins.append(np.repeat(_place(rel, self.origin), len(self.scans[i]), axis=0))
+        return np.vstack(parts), np.vstack(origins)
 
     def try_close(self, k: int, backend, pose) -> list[Closure]:
         """The closures of keyframe ``k`` (already added with :meth:`add_keyframe`) with the
@@ -195,7 +221,7 @@ class LoopCloser:
                 self.stats["loop_closures_accepted"] += 1
                 out.append(c)
             else:
-                self.stats[f"loop_rejected_{c.reason.replace(' ', '_')}"] += 1
+                self.stats[f"loop_rejected_{_key(c.reason)}"] += 1
         return out
 
     def verify(self, j: int, k: int, poses, rel, rel_cov) -> Closure:
@@ -210,10 +236,16 @@ class LoopCloser:
             search_xy=float(np.clip(3.0 * max(sd[0], sd[1]), p.min_search_xy, p.max_search_xy)),
             search_theta=float(np.clip(3.0 * sd[2], p.min_search_theta, p.max_search_theta)),
         )
-        ref_points = self.local_map(j, poses)
-        ref = Reference.build(ref_points, mp)
+        ref_points, origins = self.local_map(j, poses)
+        ref = Reference.build(ref_points, mp, origins)
         m = match(ref, self.scans[k], guess, mp)
-        c = Closure(j, k, np.asarray(m.pose, dtype=float), np.asarray(m.cov), False, "")
+        cov = timing_inflation(
+            np.asarray(m.cov),
+            self.speeds.get(j, (0.0, 0.0)),
+            self.speeds.get(k, (0.0, 0.0)),
+            self.sigma_time,
+        )
+        c = Closure(j, k, np.asarray(m.pose, dtype=float), cov, False, "")
         c.score, c.overlap = float(m.score), float(m.overlap)
         if not m.ok:
             c.reason = m.reason or "match rejected"
@@ -225,7 +257,7 @@ class LoopCloser:
         if c.see_through > p.max_see_through:
             c.reason = "sees through the old place"
             return c
-        meas = relative_pose(m.pose, m.cov)
+        meas = relative_pose(m.pose, cov)
         xi = rel.localCoordinates(meas.delta)
         S = np.asarray(rel_cov) + meas.covariance
         try:

@@ -114,11 +114,11 @@ class _Session(SlamStep):
     def mapper(self) -> Lifecycle:
         return self.map
 
-    def feed(self, sf, pre, pose0: NDArray[np.float64] | None, scan=None) -> None:
+    def feed(self, sf, pre, pose0: NDArray[np.float64] | None, scan=None, speed=(0.0, 0.0)):
         if self.failed is not None:
             return
         try:
-            self.keyframe(sf.t, sf.features, pre, pose0, scan=scan, points=sf.points)
+            self.keyframe(sf.t, sf.features, pre, pose0, scan=scan, points=sf.points, speed=speed)
         except BackendError as exc:
             self.failed = {"keyframe": self.k, "t": float(sf.t), "error": str(exc)}
 
@@ -208,13 +208,14 @@ class SlamPipeline:
             lp = replace(lp, enabled=False)
         self.keyframe_params, self.loop_params = kp, lp
         mp = match_params(cfg)
-        self.scan_odometry = ScanOdometry(kp, mp)
+        origin = (cfg.laser.mount.x, cfg.laser.mount.y)
+        self.scan_odometry = ScanOdometry(kp, mp, origin, cfg.laser.sigma_time)
         self._between: list[tuple[float, int, NDArray[np.float64]]] = []  # non-keyframes
         for b in backends:
             if b == "ekf":
                 self.sessions[b] = _Session("ekf", map_params)
             elif b in ("isam2", "batch") and "graph" not in self.sessions:
-                loop = LoopCloser(lp, mp) if lp.enabled else None
+                loop = LoopCloser(lp, mp, origin, cfg.laser.sigma_time) if lp.enabled else None
                 self.sessions["graph"] = _Session("isam2", map_params, loop)
         self.reorder = ReorderBuffer(reorder_window)
         self.frontend = FrontEnd(cfg, sensors, select=self._select)
@@ -273,33 +274,33 @@ class SlamPipeline:
         t0 = time.perf_counter()
         out = self.frontend.add(ev)
         self._fe_wall += time.perf_counter() - t0
-        for sf in out:
-            self._scan(sf)
+        n = sum(self._scan(sf) for sf in out)
         if self.progress is not None:
             self.progress(ev.t)
-        return len(out)
+        return n
 
-    def _select(self, t: float, points, odom) -> bool:
+    def _select(self, t: float, points, odom, v: float = 0.0, w: float = 0.0) -> bool:
         """The front end asks, scan by scan in time order, whether to extract features: the
         scan odometry decides whether the scan is a keyframe (in fused mode a few scans may
         be decided before the last keyframe's map support is known)."""
-        step = self.scan_odometry.add(points, odom)
+        step = self.scan_odometry.add(points, odom, (v, w))
         self._steps.append(step)
         return step.keyframe
 
-    def _scan(self, sf) -> None:
-        """One front-end output: a keyframe, or a scan carried by its keyframe."""
+    def _scan(self, sf) -> bool:
+        """One front-end output: a keyframe (True), or a scan carried by its keyframe."""
         step = self._steps.popleft()
         if not step.keyframe:
             self._between.append((sf.t, len(self.kf_times) - 1, step.rel))
             self.stats["scans_between_keyframes"] += 1
-            return
+            return False
         scan = step.scan if self.keyframe_params.odometry != "wheels" else None
-        self._keyframe(sf, scan)
+        self._keyframe(sf, scan, step.speed)
         sess = next(iter(self.sessions.values()))
         self.scan_odometry.map_support(len(sf.features), sess.tracked)
+        return True
 
-    def _keyframe(self, sf, scan=None) -> None:
+    def _keyframe(self, sf, scan=None, speed=(0.0, 0.0)) -> None:
         o = self.cfg.odometry
         samples = self._samples
         ts, lr, ll = [], [], []
@@ -328,7 +329,7 @@ class SlamPipeline:
         if scan is not None and self.keyframe_params.odometry == "scan":
             wheels = None  # the scan match alone (wheels only where it was rejected)
         for sess in self.sessions.values():
-            sess.feed(sf, wheels, self._odo_pose if first else None, scan)
+            sess.feed(sf, wheels, self._odo_pose if first else None, scan, speed)
         self.stats.update({f"frontend_{k}": v for k, v in sf.stats.items()})
         self.kf_times.append(sf.t)
         self._kf_odo.append(self._odo_pose.copy())

@@ -74,12 +74,13 @@ class SlamStep:
         given: list[int] | None = None,
         scan: Preintegrated | None = None,
         points: NDArray[np.float64] | None = None,
+        speed: tuple[float, float] = (0.0, 0.0),
     ) -> list[int | None]:
         """Process one keyframe at time ``t`` (the first: ``pose0``, world; later: ``pre``, the
         odometry since the last one, and/or ``scan``, the scan match from the last keyframe).
         ``given``: the caller's landmark id per feature (data association given, e.g.
         Victoria Park's file), skipping association and lifecycle. ``points``: the keyframe's
-        laser scan (robot frame) for loop closures.
+        laser scan (robot frame) for loop closures, ``speed`` the robot's (m/s, rad/s) then.
         Returns the landmark id each feature went to (None: not used). Raises the backend's
         error (e.g. :class:`fgslam.slam.graph.BackendError`) unchanged."""
         t0 = time.perf_counter()
@@ -106,7 +107,7 @@ class SlamStep:
         else:
             where = self._keyframe_own(t, features, pose)
         if self.loops is not None:
-            self.loops.add_keyframe(self.k, points, pose)
+            self.loops.add_keyframe(self.k, points, pose, speed)
             if self.k > 0:
                 for c in self.loops.try_close(self.k, be, pose):
                     be.add_loop(c.j, relative_pose(c.pose, c.cov))
