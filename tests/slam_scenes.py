@@ -10,6 +10,10 @@ from fgslam.sim.sensors import SimParams
 from fgslam.sim.simulate import events, plan_run
 from fgslam.sim.world import parse_world
 
+# the paper's scheme: wheel odometry, every scan a keyframe, no loop closures (the tests of
+# map management and of the wheel-odometry models that count keyframes per scan)
+PAPER = {"odometry": "wheels", "keyframes": "every-scan", "loop_closures": "off"}
+
 ROOM = {
     "name": "room",
     "walls": [

@@ -130,7 +130,7 @@ def test_config_overrides_the_logs_configuration_key_by_key(tmp_path, capsys):
     argv = ["run", str(src), "--backend", "ekf", "--sensors", "laser", "--config", str(k)]
     assert main([*argv, "--out", str(out)]) == 0
     rep = json.loads((out / "report.json").read_text())
-    assert rep["config_source"] == str(k) and rep["poses"] == 30
+    assert rep["config_source"] == str(k) and rep["scans_placed"] == 30
     beams = tmp_path / "beams.toml"
     beams.write_text("[laser]\nn_beams = 361\n")
     argv[-1] = str(beams)
@@ -357,7 +357,7 @@ def test_compare_reads_carmen_logs(tmp_path):
     src = tmp_path / "room.log"
     src.write_text(carmen_text(corrected=True))
     rows = compare(src, tmp_path / "cmp", backends=("ekf",), sensors=("laser",), workers=1)
-    assert len(rows) == 1 and rows[0]["poses"] == 30
+    assert len(rows) == 1 and rows[0]["scans_placed"] == 30
     md = (tmp_path / "cmp" / "comparison.md").read_text()
     assert md.startswith("# fgslam compare: room.log") and "30 scans of 180 beams" in md
     assert "along the reference" in md

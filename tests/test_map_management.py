@@ -10,10 +10,11 @@ import math
 import gtsam
 import numpy as np
 import pytest
-from slam_scenes import room_events
+from slam_scenes import PAPER, room_events
 
 from factors.odometry import Preintegrated
 from fgslam import evaluation
+from fgslam.config import with_scanmatch
 from fgslam.frontend.features import Feature
 from fgslam.slam import association, step
 from fgslam.slam.association import AssociationParams, Candidate
@@ -47,6 +48,7 @@ def test_graph_association_decisions_equal_those_from_fresh_estimates(monkeypatc
     decision of an iSAM2 run equals the one computed with fresh means of every landmark
     (before the fix the gate used the stale residual with the fresh covariance)."""
     evs, cfg, _ = room_events(0)
+    cfg = with_scanmatch(cfg, PAPER)  # one keyframe per scan
     calls = {"n": 0, "stale": 0}
     real = association.associate
 
@@ -258,6 +260,7 @@ def test_backend_failure_mid_run_returns_the_result_up_to_the_last_good_keyframe
     pipeline stops feeding iSAM2 and its result holds keyframes 0-29 with
     stats["partial"] naming keyframe, time and variable; the EKF in the same pass runs on."""
     evs, cfg, _ = room_events(0)
+    cfg = with_scanmatch(cfg, PAPER)  # one keyframe per scan
     real = GraphBackend.commit
 
     def commit(self):

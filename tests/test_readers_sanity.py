@@ -10,6 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from readers_helpers import carmen_text
+from slam_scenes import PAPER
 
 from fgslam.cli import main
 from fgslam.events import LaserScan, OdometryEvent, TruthPose
@@ -328,6 +329,7 @@ def test_odometry_hole_through_the_pipeline(tmp_path):
     """The 7 s hole of the synthetic log, run through SLAM (laser, EKF): the keyframes in it
     get the hole covariance (counted in the statistics, each second once), not zero motion
     with full confidence."""
+    from fgslam.config import with_scanmatch
     from fgslam.slam.runner import run_slam
 
     text = carmen_text(corrected=False)
@@ -335,7 +337,7 @@ def test_odometry_hole_through_the_pipeline(tmp_path):
     odom = [k for k, ln in enumerate(lines) if ln.startswith("ODOM")]
     keep = [ln for k, ln in enumerate(lines) if k not in odom[10:16]]
     log = open_log(write(tmp_path, "\n".join(keep) + "\n"))
-    res = run_slam(log, log.config, "ekf", "laser")
+    res = run_slam(log, with_scanmatch(log.config, PAPER), "ekf", "laser")
     assert res.stats["odometry_hole_seconds"] == pytest.approx(7.0)
     assert res.stats["odometry_hole_intervals"] == 6
 

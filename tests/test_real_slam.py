@@ -129,14 +129,14 @@ def test_convert_run_evaluate_carmen(tmp_path, capsys):
     text = capsys.readouterr().out
     assert "not ground truth" in text
     rep = json.loads((run_dir / "report.json").read_text())
-    assert rep["truth_source"] == "reference" and rep["poses"] == 30
+    assert rep["truth_source"] == "reference" and rep["scans_placed"] == 30
     assert rep["reader"]["skipped_by_reason"] == {"unknown record NEFF": 30}
     assert rep["landmarks_total"] >= 3
     assert rep["ate"]["rmse"] < rep["ate_odometry"]["rmse"]
     report = tmp_path / "eval.json"
     assert main(["evaluate", str(run_dir), "--reference", str(src), "--out", str(report)]) == 0
     ev = json.loads(report.read_text())
-    assert ev["reference_kind"] == "reference" and ev["poses_compared"] == 30
+    assert ev["reference_kind"] == "reference" and ev["poses_compared"] == rep["poses"]
     assert ev["ate"]["rmse"] == pytest.approx(rep["ate"]["rmse"], abs=1e-3)
     # bad input is one line on stderr
     assert main(["convert", str(tmp_path / "missing.log"), "--out", str(out_log)]) == 2
