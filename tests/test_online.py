@@ -163,7 +163,7 @@ def assert_everything_arrived(run, emulation, duration) -> None:
     # the pipeline's reorder buffer puts it back; nothing is dropped
     assert run.late <= 4 and "events_out_of_order" not in run.result.stats
     assert run.result.stats["events_laser"] == run.events["laser"]
-    assert len(run.result.times) == run.events["laser"]  # one keyframe per scan
+    assert len(run.result.every_scan[0]) == run.events["laser"]  # a pose at every scan
 
 
 def assert_equals_replay(run, raw, tmp_path) -> None:
@@ -258,7 +258,7 @@ def test_online_matches_fgslam_run_on_the_simulated_log(online_run, tmp_path):
         for p in b[kind]:
             if len(a[kind]):
                 dists.append(np.min(np.hypot(*(a[kind] - p).T)))
-    assert len(dists) >= 10
+    assert len(dists) >= 6
     assert np.median(dists) < 0.02 and np.mean(np.array(dists) < 0.10) >= 0.8, dists
 
 
@@ -297,7 +297,7 @@ def test_disconnect_mid_run_reconnects_and_records_everything(tmp_path):
     run, emulation = online(raw, duration=25.0, seed=2, faults=faults, reopen_interval=0.1)
     sent = emulation["stats"]
     st = run.status
-    assert run.reason == "end of data" and len(run.result.times) > 50
+    assert run.reason == "end of data" and len(run.result.every_scan[0]) > 50
     assert st["odometry"]["disconnects"] >= 1 and st["odometry"]["opens"] >= 2
     assert st["sonar0"]["discarded"] > 0
     start, end = emulation["start_time"], emulation["start_time"] + 25.0
@@ -351,7 +351,7 @@ def test_stop_writes_the_outputs(tmp_path):
         emu.stop()
         th.join(5)
     assert run.reason == "interrupted" and not finished
-    assert 20 < rep["poses"] == len(run.result.times)
+    assert rep["poses"] == len(run.result.times) and 20 < rep["scans_placed"]
     assert 5.0 < rep["log_duration_s"] < 30.0
     for name in ("trajectory.tum", "map.json", "report.json", "map.png"):
         assert (tmp_path / "out" / name).stat().st_size > 0
@@ -446,7 +446,7 @@ def test_killed_online_run_keeps_its_last_checkpoint(tmp_path):
         online.kill()  # SIGKILL
         online.wait(30)
         rep = json.loads((out / "report.json").read_text())
-        assert rep["checkpoint"]["complete"] is False and rep["poses"] > 10
+        assert rep["checkpoint"]["complete"] is False and rep["scans_placed"] > 10
         traj = (out / "trajectory.tum").read_text().splitlines()
         assert len(traj) == rep["poses"]
         assert json.loads((out / "map.json").read_text())["landmarks"]

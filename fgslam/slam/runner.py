@@ -396,6 +396,7 @@ class SlamPipeline:
             last_t=self.last_t,
             sensors=self.sensors,
             final=False,
+            between=self._between,
         )
 
     def finish(self) -> list[SlamResult]:
