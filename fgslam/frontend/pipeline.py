@@ -148,7 +148,7 @@ class FrontEnd:
             ev = LaserScan(ev.t - self.mean_delay, ev.ranges)
             if self.poses.last_time == -math.inf:
                 self.poses.add(ev.t, self.odo.pose)
-            v, w = self.odo.velocity
+            v, w = self.poses.velocity(ev.t)
             self.pending.append((ev, v, w))
         elif isinstance(ev, SonarReading) and self.mode != "laser":
             self.sonar.add(ev)
@@ -184,7 +184,7 @@ class FrontEnd:
             self._next_sonar_step + self.p.window <= self.now
         ):
             fake = LaserScan(self._next_sonar_step, np.full(len(self.phi), np.nan))
-            out.append(self.process_scan(fake, *self.odo.velocity))
+            out.append(self.process_scan(fake, *self.poses.velocity(fake.t)))
             self._next_sonar_step += self.p.sonar_step
         return out
 

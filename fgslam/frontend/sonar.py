@@ -58,6 +58,18 @@ class PoseHistory:
             out[..., k] = np.interp(t, ts, ps[:, k])
         return out
 
+    def velocity(self, t: float, window: float = 0.25) -> tuple[float, float]:
+        """The robot's speed (m/s) and turn rate (rad/s) at ``t``: the odometry's motion over
+        the ``window`` s before it (one sample's rate is noise on logs whose samples come at
+        irregular or repeated stamps)."""
+        if self._hi - self._lo < 2:
+            return 0.0, 0.0
+        a, b = self.at(np.array([t - window, t]))
+        span = min(window, t - float(self._t[self._lo]))
+        if span <= 0:
+            return 0.0, 0.0
+        return float(np.hypot(*(b[:2] - a[:2]))) / span, abs(float(b[2] - a[2])) / span
+
     @property
     def last_time(self) -> float:
         return float(self._t[self._hi - 1]) if self._hi > self._lo else -math.inf
