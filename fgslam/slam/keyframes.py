@@ -1,7 +1,8 @@
 """Scan odometry and the keyframe policy (DESIGN 5b; beyond the paper).
 
-Every laser scan is matched (:mod:`fgslam.scanmatch`) against the last keyframe's scan, the
-match started from the wheel odometry since the previous scan; that carries the pose forward
+Every laser scan is matched (:mod:`fgslam.scanmatch`) against a local map of the last few
+keyframes' scans in the last keyframe's frame, the match started from the wheel odometry
+since the previous scan; that carries the pose forward
 between keyframes. A scan becomes a keyframe when the robot has moved ``distance`` or turned
 ``angle`` since the last keyframe, when its overlap with the keyframe's scan falls below
 ``min_overlap``, or when the last keyframe tracked too few of its features in the map (the
@@ -16,8 +17,9 @@ pose in the frame of the last keyframe.
 
 from __future__ import annotations
 
+import dataclasses
 import math
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -40,7 +42,8 @@ class KeyframeParams:
     ``min_overlap``: a scan overlapping the keyframe's scan less than this is a keyframe;
     ``min_tracked``: a keyframe with at least ``min_features`` features of which fewer than
     this many went to landmarks already in the map (confirmed or tentative) makes the next
-    scan a keyframe, so that a new place's features are seen again soon."""
+    scan a keyframe, so that a new place's features are seen again soon; ``local_map``: scans
+    are matched against the last this many keyframes' scans (placed by the scan odometry)."""
 
     policy: str = "motion"
     odometry: str = "both"
@@ -49,6 +52,7 @@ class KeyframeParams:
     min_overlap: float = 0.35
     min_tracked: int = 2
     min_features: int = 3
+    local_map: int = 1
 
     def __post_init__(self) -> None:
         if self.policy not in POLICIES:
@@ -102,6 +106,14 @@ def _between(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float
     return np.array([c * dx + s * dy, -s * dx + c * dy, wrap_angle(b[2] - a[2])])
 
 
+def _place(pose: NDArray[np.float64], pts: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Points given in the frame of ``pose``, in the frame ``pose`` is expressed in."""
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    return np.column_stack(
+        [pose[0] + c * pts[:, 0] - s * pts[:, 1], pose[1] + s * pts[:, 0] + c * pts[:, 1]]
+    )
+
+
 def _compose(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
     c, s = math.cos(a[2]), math.sin(a[2])
     return np.array(
@@ -126,7 +138,9 @@ class ScanOdometry:
         (DESIGN 3.4), which inflates a keyframe-to-keyframe match by the robot's motion at
         both scans."""
         self.p = params
-        self.mp = match_params
+        # between consecutive scans an ambiguous match (a corridor) is still a measurement:
+        # its covariance is long where the scan is uninformative, and the wheels fill in
+        self.mp = dataclasses.replace(match_params, max_ambiguity=math.inf)
         self.origin = origin
         self.sigma_time = sigma_time
         self._ref_speed = (0.0, 0.0)
@@ -137,6 +151,8 @@ class ScanOdometry:
         self._low_support = False
         self._started = False
         self.keyframe_points: NDArray[np.float64] | None = None
+        self._chain = np.zeros(3)  # the keyframe's pose along the scan-odometry chain
+        self._recent: deque = deque(maxlen=params.local_map)  # (chain pose, points)
 
     def map_support(self, features: int, tracked: int) -> None:
         """How many features the last keyframe had and how many of them went to landmarks
@@ -179,12 +195,29 @@ class ScanOdometry:
             scan = relative_pose(m.pose, cov)
         self._ref_speed = speed
         self._ref = None
-        if self.p.matching and usable:
-            self._ref = Reference.build(points, self.mp, self.origin)
+        self._chain = _compose(self._chain, guess)
+        if usable:
+            self._recent.append((self._chain, points))
+        if self.p.matching and self._recent:
+            self._ref = self._local_map()
         self.keyframe_points = points if usable else None
         self._rel = np.zeros(3)
         self._low_support = False
         return ScanStep(True, guess.copy(), scan, m, speed)
+
+    def _local_map(self) -> Reference:
+        """The last ``local_map`` keyframes' points in the newest keyframe's frame, placed by
+        the scan-odometry chain, with the laser position each was seen from."""
+        here = self._chain
+        pts, origins = [], []
+        o = np.array([[self.origin[0], self.origin[1]]])
+        for pose, p in self._recent:
+            rel = _between(here, pose)
+            pts.append(_place(rel, p))
+            origins.append(np.repeat(_place(rel, o), len(p), axis=0))
+        if len(pts) == 1:
+            return Reference.build(pts[0], self.mp, self.origin)
+        return Reference.build(np.vstack(pts), self.mp, np.vstack(origins))
 
     def _keyframe_reason(self, first: bool, m: Match | None) -> str | None:
         p = self.p
