@@ -14,7 +14,7 @@ from fgslam.config import load_config, match_params
 from fgslam.sim.raycast import raycast
 from fgslam.slam.graph import GraphBackend
 from fgslam.slam.keyframes import KeyframeParams, ScanOdometry
-from fgslam.slam.loops import LoopCloser, LoopParams
+from fgslam.slam.loops import AWAITING, LoopCloser, LoopParams
 from fgslam.slam.step import SlamStep
 
 BEARINGS = np.radians(np.linspace(-90.0, 90.0, 181))
@@ -183,7 +183,33 @@ def test_loop_closure_rejects_a_similar_looking_different_room(place):
     believed = _between(old, old + np.array([0.3, 0.1, 0.05]))  # the aliased belief
     cov = np.diag([0.15, 0.15, math.radians(3.0)]) ** 2
     c = closer.verify(0, 1, poses, gtsam.Pose2(*believed), cov)
-    if place == "same room":
-        assert c.accepted, c
+    if place == "same room":  # verified; over this much uncertainty it waits for a second
+        assert c.reason == AWAITING and not c.accepted, c
+        sure = closer.verify(0, 1, poses, gtsam.Pose2(*believed), cov / 16)
+        assert sure.accepted, sure
     else:
-        assert not c.accepted, c
+        assert not c.accepted and c.reason not in ("", AWAITING), c
+
+
+def test_an_uncertain_closure_enters_only_with_a_second_that_agrees():
+    """Two verified closures of consecutive keyframes to neighbouring old ones enter together
+    when they agree through the estimate's geometry; one that disagrees waits, and expires."""
+    from fgslam.slam.loops import Closure
+
+    closer = LoopCloser(LoopParams(confirm_window=3), _mp())
+    poses = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [5.0, 5.0, 1.0], [5.5, 5.0, 1.0]])
+    here = np.array([5.5, 5.0, 1.0])
+
+    def closure(j, k, pose):
+        return Closure(j, k, np.array(pose, dtype=float), np.eye(3) * 1e-4, False, AWAITING)
+
+    true = [_between(poses[0], poses[2]), _between(poses[1], here)]
+    first = closure(0, 2, true[0])
+    assert closer._confirm(first, poses, poses[2]) == []  # pending
+    wrong = closure(1, 3, true[1] + np.array([0.5, 0.0, 0.0]))
+    assert closer._confirm(wrong, poses, here) == []
+    good = closure(1, 3, true[1] + np.array([0.03, -0.02, 0.005]))
+    both = closer._confirm(good, poses, here)
+    assert both == [first, good] and first.accepted and good.accepted
+    closer._expire(3 + 4)  # the wrong one finds no partner in time
+    assert wrong.reason == "unconfirmed" and not closer.pending

@@ -77,8 +77,9 @@ class Backend(ABC):
         (GTSAM's between convention)."""
         raise NotImplementedError(f"{self.name} does not close loops")
 
-    def add_loop(self, j: int, m: Preintegrated) -> None:
-        """A verified relative pose from keyframe ``j`` to the current one."""
+    def add_loop(self, j: int, k: int, m: Preintegrated) -> None:
+        """A verified relative pose from keyframe ``j`` to keyframe ``k`` (the current one or
+        an earlier one)."""
         raise NotImplementedError(f"{self.name} does not close loops")
 
     def finish(self) -> list[tuple[float, NDArray[np.float64], NDArray[np.float64]]]:

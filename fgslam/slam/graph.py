@@ -198,10 +198,11 @@ class GraphBackend(Backend):
         C = M @ J @ M.T + self._pre.covariance
         return r.compose(d), 0.5 * (C + C.T)
 
-    def add_loop(self, j: int, m: Preintegrated) -> None:
-        """A verified loop closure: keyframe ``j`` to the current one, robust."""
+    def add_loop(self, j: int, k: int, m: Preintegrated) -> None:
+        """A verified loop closure: keyframe ``j`` to keyframe ``k`` (at most the current
+        one), robust."""
         noise = models.noise_model(m.covariance, self.robust)
-        self.new_graph.add(gtsam.BetweenFactorPose2(X(j), X(self.k), m.delta, noise))
+        self.new_graph.add(gtsam.BetweenFactorPose2(X(j), X(k), m.delta, noise))
         self._loop_added = True
 
     def pose(self) -> NDArray[np.float64]:

@@ -11,7 +11,13 @@ the current scan does not see through the old place's surfaces (negative informa
 most ``max_see_through`` of the local map's points that lie in the scan's view are behind
 its returns by more than ``see_through_margin``; a similar-looking room with one thing moved
 fails here), and it agrees with the backend's relative pose and covariance (chi-square gate
-``gate_p`` on the difference). Accepted closures enter
+``gate_p`` on the difference). That gate discriminates only when the estimate is sure of
+the relative pose (3 sigma within ``confident_xy`` and ``confident_theta``); a closure over a
+larger uncertainty (the first closure of a long loop, where a similar-looking corridor
+elsewhere would pass) waits for a second one, from a keyframe at most ``confirm_window``
+later, that agrees with it through the estimate's local geometry (both old keyframes in the
+old map, both new ones along the new chain: within ``pair_xy`` and ``pair_theta``); then both
+enter. A false match rarely repeats consistently. Accepted closures enter
 the graph as robust between factors. Every attempt is kept in :attr:`LoopCloser.closures`
 (report.json, map.png).
 
@@ -53,6 +59,11 @@ class LoopParams:
     gate_p: float = 0.999
     see_through_margin: float = 0.3
     max_see_through: float = 0.05
+    confident_xy: float = 0.3
+    confident_theta: float = math.radians(3.0)
+    confirm_window: int = 10
+    pair_xy: float = 0.2
+    pair_theta: float = math.radians(2.0)
 
 
 @dataclass
@@ -105,6 +116,25 @@ def _in_frame(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.floa
     return np.array([c * dx + s * dy, -s * dx + c * dy, th])
 
 
+AWAITING = "awaiting confirmation"
+
+
+def _compose(a, b) -> NDArray[np.float64]:
+    c, s = math.cos(a[2]), math.sin(a[2])
+    return np.array(
+        [
+            a[0] + c * b[0] - s * b[1],
+            a[1] + s * b[0] + c * b[1],
+            math.remainder(a[2] + b[2], 2 * math.pi),
+        ]
+    )
+
+
+def _invert(a) -> NDArray[np.float64]:
+    c, s = math.cos(a[2]), math.sin(a[2])
+    return np.array([-c * a[0] - s * a[1], s * a[0] - c * a[1], -a[2]])
+
+
 def see_through(query: NDArray[np.float64], ref: NDArray[np.float64], pose, margin: float) -> float:
     """The fraction of the reference points (their frame) that lie within the query scan's
     view (query robot frame at ``pose`` in the reference frame) but in front of its return
@@ -154,6 +184,7 @@ class LoopCloser:
         self.closures: list[Closure] = []
         self.stats: Counter = Counter()
         self._gate = float(chi2.ppf(params.gate_p, 3))
+        self.pending: list[Closure] = []  # verified, waiting for a second that agrees
 
     def add_keyframe(
         self,
@@ -212,17 +243,54 @@ class LoopCloser:
         if not p.enabled or k not in self.scans or k % p.every:
             return []
         poses = backend.keyframe_poses()
-        out = []
+        out: list[Closure] = []
+        self._expire(k)
         for j in self.candidates(k, poses, pose):
             c = self.verify(j, k, poses, *backend.relative(j))
             self.closures.append(c)
             self.stats["loop_closures_tried"] += 1
-            if c.accepted:
+            if c.reason == AWAITING:
+                out.extend(self._confirm(c, poses, pose))
+            elif c.accepted:
                 self.stats["loop_closures_accepted"] += 1
                 out.append(c)
             else:
                 self.stats[f"loop_rejected_{_key(c.reason)}"] += 1
         return out
+
+    def _expire(self, k: int) -> None:
+        keep = []
+        for c in self.pending:
+            if k - c.k > self.p.confirm_window:
+                c.reason = "unconfirmed"
+                self.stats["loop_rejected_unconfirmed"] += 1
+            else:
+                keep.append(c)
+        self.pending = keep
+
+    def _confirm(self, c2: Closure, poses, pose) -> list[Closure]:
+        """Accept ``c2`` and an earlier pending closure that agrees with it, if any; else
+        keep ``c2`` pending."""
+        p = self.p
+        for c1 in self.pending:
+            if c1.k == c2.k:
+                continue
+            old = _in_frame(poses[c1.j], poses[c2.j])
+            new = _in_frame(poses[c1.k], pose) if c1.k < len(poses) else None
+            if new is None:
+                continue
+            pred = _compose(_compose(_invert(old), c1.pose), new)
+            d = c2.pose - pred
+            dth = math.remainder(d[2], 2 * math.pi)
+            if math.hypot(d[0], d[1]) <= p.pair_xy and abs(dth) <= p.pair_theta:
+                self.pending.remove(c1)
+                for c in (c1, c2):
+                    c.accepted, c.reason = True, ""
+                    self.stats["loop_closures_accepted"] += 1
+                    self.stats["loop_closures_confirmed_by_a_second"] += 1
+                return [c1, c2]
+        self.pending.append(c2)
+        return []
 
     def verify(self, j: int, k: int, poses, rel, rel_cov) -> Closure:
         """Match keyframe ``k``'s scan against ``j``'s local map around the predicted relative
@@ -266,6 +334,9 @@ class LoopCloser:
             c.mahalanobis2 = math.inf
         if not c.mahalanobis2 <= self._gate:
             c.reason = "inconsistent with the estimate"
+            return c
+        if 3.0 * max(sd[0], sd[1]) > p.confident_xy or 3.0 * sd[2] > p.confident_theta:
+            c.reason = AWAITING
             return c
         c.accepted = True
         return c

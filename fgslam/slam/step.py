@@ -110,7 +110,7 @@ class SlamStep:
             self.loops.add_keyframe(self.k, points, pose, speed)
             if self.k > 0:
                 for c in self.loops.try_close(self.k, be, pose):
-                    be.add_loop(c.j, relative_pose(c.pose, c.cov))
+                    be.add_loop(c.j, c.k, relative_pose(c.pose, c.cov))
         be.commit()
         means = be.means()
         pose = be.pose()
