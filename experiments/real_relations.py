@@ -132,7 +132,7 @@ def run(
             note = ""
             if "partial" in res.stats:
                 note = " (partial: " + str(res.stats["partial"]["error"])[:60] + ")"
-            if figures is not None:
+            if figures is not None and res.backend == "isam2":
                 figure(figures, name, mode, res, sample, cfg)
             loops = sum(c["accepted"] for c in res.loop_closures)
             print(
