@@ -51,3 +51,33 @@ def test_run_bad_input(tmp_path, capsys):
     assert main(["run", str(bad), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err
     assert "bad.log" in err and "Traceback" not in err
+
+
+def test_run_scan_matching_options(short_log, tmp_path, capsys):
+    """--odometry/--keyframes/--loops: the paper's scheme has a keyframe at every scan; the
+    default (scan matching, keyframes by motion) fewer keyframes and a pose at every scan;
+    report.json says which; an unknown choice is a usage error."""
+    paper, default = tmp_path / "paper", tmp_path / "default"
+    args = ["run", str(short_log), "--backend", "isam2", "--sensors", "laser"]
+    assert (
+        main(
+            [*args, "--odometry", "wheels", "--keyframes", "every-scan", "--loops", "off"]
+            + ["--out", str(paper)]
+        )
+        == 0
+    )
+    assert main([*args, "--out", str(default)]) == 0
+    a = json.loads((paper / "report.json").read_text())
+    b = json.loads((default / "report.json").read_text())
+    assert a["poses"] == a["scans_placed"] == b["scans_placed"]
+    assert b["poses"] < a["poses"] / 2
+    sa, sb = a["statistics"], b["statistics"]
+    assert "scan_matches" not in sa and sa["keyframes_wheels_only"] == a["poses"] - 1
+    assert sb["scan_matches"] == b["scans_placed"] - 1 and sb["keyframes_scan_linked"] > 0
+    assert b["ate"]["rmse"] < 0.1 and a["ate"]["rmse"] < 0.1
+    dense = (default / "trajectory_dense.tum").read_text().splitlines()
+    assert len(dense) >= b["scans_placed"]
+    capsys.readouterr()
+    with pytest.raises(SystemExit):
+        main([*args, "--odometry", "sonar", "--out", str(tmp_path / "x")])
+    assert "--odometry" in capsys.readouterr().err

@@ -174,7 +174,8 @@ def describe_run(
         f"max range {las.max_range:g} m\n"
         f"- sonar: {n['SonarReading']} readings from {len(cfg.sonar.arrays)} arrays ({arrays})\n"
         f"- odometry: {n['OdometryEvent']} samples; {n['TruthPose']} poses of {truth_kind}\n"
-        f"{_input_line(reader or {}, res)}\n"
+        f"{_input_line(reader or {}, res)}"
+        f"{_scanmatch_line(cfg, results)}\n"
         "Columns: ATE RMSE / max: position error of the keyframe poses against the truth after "
         "an SE(2) alignment (m); final error: position error of the last pose, unaligned (m); "
         "NEES mean: mean normalised estimation error squared of the poses, expected near its "
@@ -183,6 +184,25 @@ def describe_run(
         "time over wall time; latency p95: 95th percentile of the time a keyframe takes (ms). "
         "'-': not available (no truth, or no pose covariances).\n\n"
     )
+
+
+def _scanmatch_line(cfg: RobotConfig, results: list[SlamResult]) -> str:
+    """'- keyframes: ...': the scan-matching scheme, and that the EKF closes no loops."""
+    sm = cfg.scanmatch
+    line = (
+        f"- keyframes (laser modes; sonar only: every step, wheel odometry): {sm.keyframes}, "
+        f"linked by {sm.odometry} odometry; loop closures {sm.loop_closures}"
+    )
+    loops = {
+        r.backend: sum(c["accepted"] for c in r.loop_closures) for r in results if r.loop_closures
+    }
+    if sm.loop_closures == "on":
+        line += (
+            " (graph backends only: the EKF keeps no past poses to close a loop on, so it "
+            "cannot use them"
+        )
+        line += f"; accepted: {loops})" if loops else ")"
+    return line + "\n"
 
 
 def _input_line(reader: dict[str, Any], res: SlamResult | None) -> str:
