@@ -38,29 +38,13 @@ import gtsam
 import numpy as np
 from scipy.stats import chi2
 
+from factors.geometry import between_poses, compose_poses
 from fgslam.config import load_config
 from fgslam.scanmatch import MatchParams, Reference, match, scan_points
 from fgslam.sim.sensors import SimParams, laser_scan
 from fgslam.sim.world import load_world
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
-
-
-def compose(a, b) -> np.ndarray:
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return np.array(
-        [
-            a[0] + c * b[0] - s * b[1],
-            a[1] + s * b[0] + c * b[1],
-            math.remainder(a[2] + b[2], 2 * math.pi),
-        ]
-    )
-
-
-def between(a, b) -> np.ndarray:
-    c, s = math.cos(a[2]), math.sin(a[2])
-    dx, dy = b[0] - a[0], b[1] - a[1]
-    return np.array([c * dx + s * dy, -s * dx + c * dy, math.remainder(b[2] - a[2], 2 * math.pi)])
 
 
 # ------------------------------------------------------------------ simulation
@@ -77,7 +61,7 @@ def simulated_nees(n: int, seed: int) -> list[str]:
     )
 
     def scan(pose, rng):
-        r = laser_scan(world, las, sim, tuple(compose(pose, mount)), -1000.0, rng)
+        r = laser_scan(world, las, sim, tuple(compose_poses(pose, mount)), -1000.0, rng)
         return scan_points(r, las.bearings, mount, las.max_range)
 
     def free(rng, where):
@@ -103,10 +87,10 @@ def simulated_nees(n: int, seed: int) -> list[str]:
                 d = np.array(
                     [rng.uniform(-0.3, 0.3), rng.uniform(-0.2, 0.2), rng.uniform(-0.15, 0.15)]
                 )
-                if world.clearance(compose(a, d)[None, :2])[0] > 0.3:
+                if world.clearance(compose_poses(a, d)[None, :2])[0] > 0.3:
                     break
             guess = d + np.array([rng.normal(0, 0.1), rng.normal(0, 0.1), rng.normal(0, 0.05)])
-            cases.append((scan(a, rng), scan(compose(a, d), rng), d, guess))
+            cases.append((scan(a, rng), scan(compose_poses(a, d), rng), d, guess))
         for label, params in (
             ("", base),
             (" (cov_inflation 1)", dataclasses.replace(base, cov_inflation=1.0)),
@@ -158,9 +142,13 @@ def read_log(path: Path, limit: int | None = None):
                 r[r >= 80.0] = np.nan
                 pose, odom = v[n : n + 3], v[n + 3 : n + 6]
                 if corrected:
-                    g = between(prev, before) if prev is not None and before is not None else None
+                    g = (
+                        between_poses(prev, before)
+                        if prev is not None and before is not None
+                        else None
+                    )
                 else:
-                    g = between(prev_odom, odom) if prev_odom is not None else None
+                    g = between_poses(prev_odom, odom) if prev_odom is not None else None
                 ranges.append(r)
                 poses.append(pose)
                 guesses.append(g)
@@ -191,7 +179,7 @@ def real_consecutive(path: Path, limit: int | None, reference: bool) -> tuple[st
             key = m.reason.split(" (")[0]
             reasons[key] = reasons.get(key, 0) + 1
         if reference:
-            truth = between(poses[k - 1], poses[k])
+            truth = between_poses(poses[k - 1], poses[k])
             e, o = m.pose - truth, guesses[k] - truth
             e[2], o[2] = math.remainder(e[2], 2 * math.pi), math.remainder(o[2], 2 * math.pi)
             err.append(e)
@@ -228,7 +216,7 @@ def wrong_places(path: Path, seed: int, pairs: int = 80) -> str:
     score, ok = [], []
     while len(ok) < pairs:
         i, j = (int(v) for v in rng.integers(0, len(pts), 2))
-        t = between(poses[i], poses[j])
+        t = between_poses(poses[i], poses[j])
         if np.hypot(t[0], t[1]) < 4.0:
             continue
         m = match(Reference.build(pts[i], params, origins=(0.0, 0.0)), pts[j], np.zeros(3), params)
@@ -252,14 +240,14 @@ def loop_closures(path: Path, seed: int) -> tuple[list[float], list[float], int,
         keys = list(range(k - 8, k + 1, 2))
         mp, og = [], []
         for j in keys:
-            t = between(poses[keys[0]], poses[j])
+            t = between_poses(poses[keys[0]], poses[j])
             c, s = math.cos(t[2]), math.sin(t[2])
             mp.append(pts[j] @ np.array([[c, s], [-s, c]]) + t[:2])
             og.append(np.repeat(t[None, :2], len(pts[j]), axis=0))
         t0 = time.perf_counter()
         ref = Reference.build(np.vstack(mp), params, origins=np.vstack(og))
         build.append(1000 * (time.perf_counter() - t0))
-        truth = between(poses[keys[0]], poses[k - 3])
+        truth = between_poses(poses[keys[0]], poses[k - 3])
         guess = truth + np.array(
             [rng.uniform(-1.2, 1.2), rng.uniform(-1.2, 1.2), rng.uniform(-0.3, 0.3)]
         )

@@ -71,3 +71,40 @@ def bearing_range(
     H_p = np.array([[-dy / r2, dx / r2], [dx / r, dy / r]])
     H_s = np.array([[dy / r2, -dx / r2, -1.0], [-dx / r, -dy / r, 0.0]])
     return math.atan2(ly, lx), r, H_s, H_p
+
+
+def compose_poses(a: ArrayLike, b: ArrayLike) -> NDArray[np.float64]:
+    """a * b for poses (x, y, theta), one (3,) or row by row (N, 3); theta wrapped."""
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    return np.stack(
+        [
+            a[..., 0] + c * b[..., 0] - s * b[..., 1],
+            a[..., 1] + s * b[..., 0] + c * b[..., 1],
+            wrap_angles(a[..., 2] + b[..., 2]),
+        ],
+        axis=-1,
+    )
+
+
+def between_poses(a: ArrayLike, b: ArrayLike) -> NDArray[np.float64]:
+    """inverse(a) * b for poses (x, y, theta): b in the frame of a; (3,) or (N, 3)."""
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    dx, dy = b[..., 0] - a[..., 0], b[..., 1] - a[..., 1]
+    return np.stack(
+        [c * dx + s * dy, -s * dx + c * dy, wrap_angles(b[..., 2] - a[..., 2])], axis=-1
+    )
+
+
+def invert_pose(a: ArrayLike) -> NDArray[np.float64]:
+    """inverse(a) for a pose (x, y, theta)."""
+    return between_poses(a, np.zeros(3))
+
+
+def transform_points(pose: ArrayLike, points: ArrayLike) -> NDArray[np.float64]:
+    """Points (N, 2) given in the frame of ``pose``, in the frame the pose is expressed in."""
+    x, y, th = (float(v) for v in np.asarray(pose, dtype=float).reshape(3))
+    p = np.asarray(points, dtype=float).reshape(-1, 2)
+    c, s = math.cos(th), math.sin(th)
+    return np.column_stack([x + c * p[:, 0] - s * p[:, 1], y + s * p[:, 0] + c * p[:, 1]])

@@ -20,26 +20,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from factors.geometry import wrap_angles
+from factors.geometry import between_poses, compose_poses, wrap_angles
 from factors.odometry import integrate_poses
-
-
-def _compose(a: NDArray, b: NDArray) -> NDArray:
-    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
-    return np.column_stack(
-        [
-            a[:, 0] + c * b[:, 0] - s * b[:, 1],
-            a[:, 1] + s * b[:, 0] + c * b[:, 1],
-            wrap_angles(a[:, 2] + b[:, 2]),
-        ]
-    )
-
-
-def _between(a: NDArray, b: NDArray) -> NDArray:
-    """inverse(a) * b row by row."""
-    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
-    dx, dy = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
-    return np.column_stack([c * dx + s * dy, -s * dx + c * dy, wrap_angles(b[:, 2] - a[:, 2])])
 
 
 def odometry_path(samples: ArrayLike, wheelbase: float) -> tuple[NDArray, NDArray]:
@@ -90,8 +72,8 @@ def dense_poses(
     if len(ot) < 2:
         return kp[i].copy()
     op = np.asarray(odo_path, dtype=float)
-    rel = _between(_at(ot, op, kt[i], odometry), _at(ot, op, t, odometry))
-    return _compose(kp[i], rel)
+    rel = between_poses(_at(ot, op, kt[i], odometry), _at(ot, op, t, odometry))
+    return compose_poses(kp[i], rel)
 
 
 def read_relations(path: str | Path) -> NDArray[np.float64]:
@@ -139,7 +121,7 @@ def relations_error(
         p = np.asarray(traj, dtype=float).reshape(-1, 3).copy()
         p[:, 2] = np.unwrap(p[:, 2])
         x1, x2 = _at(tt, p, used[:, 0]), _at(tt, p, used[:, 1])
-    return _metrics(_between(x1, x2), used, len(r))
+    return _metrics(between_poses(x1, x2), used, len(r))
 
 
 def dense_times(kf_t: ArrayLike, odo_t: ArrayLike) -> NDArray[np.float64]:
@@ -262,8 +244,8 @@ def chain_poses(
         lo, hi = o[q - 1], o[np.minimum(q, len(o) - 1)]
         near = np.where(np.abs(st[lo] - t[missing]) <= np.abs(st[hi] - t[missing]), lo, hi)
         pick[missing] = est_idx[near]
-    rel = _between(chain.poses[rec_of_scan[pick]], chain.poses[j])
-    return _compose(estimate[pick], rel)
+    rel = between_poses(chain.poses[rec_of_scan[pick]], chain.poses[j])
+    return compose_poses(estimate[pick], rel)
 
 
 def estimate_at_scans(
@@ -301,4 +283,4 @@ def relations_error_chain(
     est = np.asarray(estimate, dtype=float)
     x1 = chain_poses(chain, est, has, used[:, 0])
     x2 = chain_poses(chain, est, has, used[:, 1])
-    return _metrics(_between(x1, x2), used, len(r))
+    return _metrics(between_poses(x1, x2), used, len(r))

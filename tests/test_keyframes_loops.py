@@ -9,6 +9,7 @@ import math
 import numpy as np
 import pytest
 
+from factors.geometry import between_poses, compose_poses
 from factors.odometry import relative_pose
 from fgslam.config import load_config, match_params
 from fgslam.sim.raycast import raycast
@@ -44,17 +45,6 @@ def _scan(segs, pose, rng, sigma=0.01) -> np.ndarray:
     return np.column_stack([r * np.cos(b), r * np.sin(b)])
 
 
-def _between(a, b):
-    c, s = math.cos(a[2]), math.sin(a[2])
-    dx, dy = b[0] - a[0], b[1] - a[1]
-    return np.array([c * dx + s * dy, -s * dx + c * dy, math.remainder(b[2] - a[2], 2 * math.pi)])
-
-
-def _compose(a, b):
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return np.array([a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], a[2] + b[2]])
-
-
 def _mp():
     cfg = load_config()
     return match_params(cfg)
@@ -73,19 +63,19 @@ def test_keyframes_by_distance_and_scan_odometry_beats_drifting_wheels():
     kfs = []
     for i, p in enumerate(truth):
         if i:
-            d = _between(truth[i - 1], p)
-            odom = _compose(odom, d * np.array([1.05, 1.0, 1.0]) + [0, 0, math.radians(1.0)])
+            d = between_poses(truth[i - 1], p)
+            odom = compose_poses(odom, d * np.array([1.05, 1.0, 1.0]) + [0, 0, math.radians(1.0)])
         st = so.add(_scan(segs, p, rng), odom)
         if st.keyframe:
             if kf_true is not None:
                 assert st.scan is not None
                 m = np.array([st.scan.delta.x(), st.scan.delta.y(), st.scan.delta.theta()])
-                e = m - _between(kf_true, p)
+                e = m - between_poses(kf_true, p)
                 assert math.hypot(e[0], e[1]) < 0.03 and abs(e[2]) < math.radians(0.5)
             kf_true = p
             kfs.append(i)
         else:
-            e = st.rel - _between(kf_true, p)
+            e = st.rel - between_poses(kf_true, p)
             assert math.hypot(e[0], e[1]) < 0.03 and abs(e[2]) < math.radians(0.5), (i, e)
     gaps = np.diff(kfs)
     assert 9 <= gaps.min() and gaps.max() <= 11  # 0.5 m at 5.1 cm per scan
@@ -127,7 +117,7 @@ def _loop_run(loops: bool, segs, truth, rng, drift_deg=0.5):
         if k == 0:
             step.keyframe(0.0, [], None, p, points=pts)
             continue
-        d = _between(truth[k - 1], p) + np.array([0.0, 0.0, math.radians(drift_deg)])
+        d = between_poses(truth[k - 1], p) + np.array([0.0, 0.0, math.radians(drift_deg)])
         step.keyframe(float(k), [], relative_pose(d, C), points=pts)
     traj = be.finish()
     return np.array([q for _, q, _ in traj]), closer
@@ -158,7 +148,7 @@ def test_loop_closure_pulls_a_drifting_loop_back():
     assert err1[-1] < 0.15 and err1.max() < 0.5, (err1[-1], err1.max())
     for c in closer.closures:  # every accepted closure is true to 5 cm / 1 deg
         if c.accepted:
-            e = c.pose - _between(truth[c.j], truth[c.k])
+            e = c.pose - between_poses(truth[c.j], truth[c.k])
             assert math.hypot(e[0], e[1]) < 0.05 and abs(e[2]) < math.radians(1.0)
 
 
@@ -180,7 +170,7 @@ def test_loop_closure_rejects_a_similar_looking_different_room(place):
     closer.add_keyframe(1, _scan(segs, here, rng), here)
     import gtsam
 
-    believed = _between(old, old + np.array([0.3, 0.1, 0.05]))  # the aliased belief
+    believed = between_poses(old, old + np.array([0.3, 0.1, 0.05]))  # the aliased belief
     cov = np.diag([0.15, 0.15, math.radians(3.0)]) ** 2
     c = closer.verify(0, 1, poses, gtsam.Pose2(*believed), cov)
     if place == "same room":  # verified; over this much uncertainty it waits for a second
@@ -203,7 +193,7 @@ def test_an_uncertain_closure_enters_only_with_a_second_that_agrees():
     def closure(j, k, pose):
         return Closure(j, k, np.array(pose, dtype=float), np.eye(3) * 1e-4, False, AWAITING)
 
-    true = [_between(poses[0], poses[2]), _between(poses[1], here)]
+    true = [between_poses(poses[0], poses[2]), between_poses(poses[1], here)]
     first = closure(0, 2, true[0])
     assert closer._confirm(first, poses, poses[2]) == []  # pending
     wrong = closure(1, 3, true[1] + np.array([0.5, 0.0, 0.0]))

@@ -13,6 +13,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from factors.geometry import between_poses, compose_poses
 from factors.odometry import to_between_covariance
 from fgslam.config import load_config
 from fgslam.scanmatch import Match, MatchParams, Reference, match, scan_points
@@ -28,23 +29,6 @@ PARAMS = MatchParams.for_laser(LASER.sigma_range, math.radians(0.5), LASER.max_r
 INTEL = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "intel-corrected.log.gz"
 
 
-def compose(a, b) -> np.ndarray:
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return np.array(
-        [
-            a[0] + c * b[0] - s * b[1],
-            a[1] + s * b[0] + c * b[1],
-            math.remainder(a[2] + b[2], 2 * math.pi),
-        ]
-    )
-
-
-def between(a, b) -> np.ndarray:
-    c, s = math.cos(a[2]), math.sin(a[2])
-    dx, dy = b[0] - a[0], b[1] - a[1]
-    return np.array([c * dx + s * dy, -s * dx + c * dy, math.remainder(b[2] - a[2], 2 * math.pi)])
-
-
 def body_error(est, truth) -> np.ndarray:
     """GTSAM's between-factor error: Logmap(est^-1 * truth), tangent at est."""
     return gtsam.Pose2.Logmap(gtsam.Pose2(*est).between(gtsam.Pose2(*truth)))
@@ -53,7 +37,7 @@ def body_error(est, truth) -> np.ndarray:
 def sim_points(pose, rng) -> np.ndarray:
     """Robot-frame points of a simulated SICK PLS scan (true noise, quantisation, mixed
     pixels, systematic error) from robot ``pose`` in the built-in corridor world."""
-    r = laser_scan(WORLD, LASER, SimParams(), tuple(compose(pose, MOUNT)), -1000.0, rng)
+    r = laser_scan(WORLD, LASER, SimParams(), tuple(compose_poses(pose, MOUNT)), -1000.0, rng)
     return scan_points(r, LASER.bearings, MOUNT, LASER.max_range)
 
 
@@ -72,10 +56,10 @@ def sim_pair(rng, where: str):
     a = free_pose(rng, where)
     while True:
         d = np.array([rng.uniform(-0.3, 0.3), rng.uniform(-0.2, 0.2), rng.uniform(-0.15, 0.15)])
-        if WORLD.clearance(compose(a, d)[None, :2])[0] > 0.3:
+        if WORLD.clearance(compose_poses(a, d)[None, :2])[0] > 0.3:
             break
     guess = d + np.array([rng.normal(0, 0.1), rng.normal(0, 0.1), rng.normal(0, 0.05)])
-    return sim_points(a, rng), sim_points(compose(a, d), rng), d, guess
+    return sim_points(a, rng), sim_points(compose_poses(a, d), rng), d, guess
 
 
 def segment_scan(segs, pose, rng, sigma=0.01, n=361, fov=math.pi) -> np.ndarray:
@@ -117,7 +101,7 @@ def test_recovers_known_transform_from_a_poor_guess(where, seed):
     d = np.array([0.25, -0.1, 0.12])
     guess = d + np.array([0.2, -0.15, math.radians(6.0)])  # tens of cm, several degrees off
     ref = Reference.build(sim_points(a, rng), PARAMS, origins=MOUNT[:2])
-    m = match(ref, sim_points(compose(a, d), rng), guess, PARAMS)
+    m = match(ref, sim_points(compose_poses(a, d), rng), guess, PARAMS)
     e = body_error(m.pose, d)
     assert m.ok, m.reason
     sd = np.sqrt(np.diag(m.cov))
@@ -134,17 +118,20 @@ def test_loop_closure_window_on_a_local_map():
     pts, origins = [], []
     for k in range(3):
         rel = np.array([0.4 * k, 0.1 * k, -0.2 * k])
-        q = sim_points(compose(base, rel), rng)
+        q = sim_points(compose_poses(base, rel), rng)
         c, s = math.cos(rel[2]), math.sin(rel[2])
         pts.append(q @ np.array([[c, s], [-s, c]]) + rel[:2])
-        origins.append(np.repeat([compose(rel, MOUNT)[:2]], len(q), axis=0))
+        origins.append(np.repeat([compose_poses(rel, MOUNT)[:2]], len(q), axis=0))
     params = MatchParams.for_laser(
         LASER.sigma_range, math.radians(0.5), LASER.max_range, search_xy=2.0, search_theta=0.5
     )
     ref = Reference.build(np.vstack(pts), params, origins=np.vstack(origins))
     truth = np.array([1.5, 0.6, 0.9])
     m = match(
-        ref, sim_points(compose(base, truth), rng), truth + np.array([1.2, -0.9, -0.35]), params
+        ref,
+        sim_points(compose_poses(base, truth), rng),
+        truth + np.array([1.2, -0.9, -0.35]),
+        params,
     )
     assert m.ok, m.reason
     e = body_error(m.pose, truth)
@@ -289,7 +276,7 @@ def read_corrected(path: Path, limit: int):
                 ranges.append(r)
                 poses.append(v[n : n + 3])
                 ok = prev is not None and before is not None
-                odo.append(between(prev, before) if ok else None)
+                odo.append(between_poses(prev, before) if ok else None)
                 prev, before = v[n : n + 3], None
                 if len(ranges) >= limit:
                     break
@@ -312,7 +299,7 @@ def test_real_consecutive_intel_scans_agree_with_reference_poses():
         if not m.ok:
             continue
         ok += 1
-        e = m.pose - between(poses[k - 1], poses[k])
+        e = m.pose - between_poses(poses[k - 1], poses[k])
         good += np.hypot(e[0], e[1]) < 0.05 and abs(math.remainder(e[2], 2 * math.pi)) < 0.02
     assert tried >= 140
     assert ok >= 0.6 * tried, (ok, tried)

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from factors.geometry import wrap_angle
+from factors.geometry import between_poses, compose_poses, transform_points
 from factors.odometry import Preintegrated, relative_pose
 from factors.sensor_models import time_registration_inflation
 from fgslam.scanmatch import Match, MatchParams, Reference, match
@@ -102,28 +102,6 @@ def _key(reason: str) -> str:
     return reason.split(" (")[0].strip().replace(" ", "_")
 
 
-def _between(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Pose b in the frame of pose a."""
-    c, s = math.cos(a[2]), math.sin(a[2])
-    dx, dy = b[0] - a[0], b[1] - a[1]
-    return np.array([c * dx + s * dy, -s * dx + c * dy, wrap_angle(b[2] - a[2])])
-
-
-def _place(pose: NDArray[np.float64], pts: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Points given in the frame of ``pose``, in the frame ``pose`` is expressed in."""
-    c, s = math.cos(pose[2]), math.sin(pose[2])
-    return np.column_stack(
-        [pose[0] + c * pts[:, 0] - s * pts[:, 1], pose[1] + s * pts[:, 0] + c * pts[:, 1]]
-    )
-
-
-def _compose(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return np.array(
-        [a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], wrap_angle(a[2] + b[2])]
-    )
-
-
 class ScanOdometry:
     """Feed scans in time order with :meth:`add` (robot-frame points and the wheel-odometry
     pose at the scan's time); see the module doc. ``stats`` counts matches, rejections and
@@ -172,11 +150,11 @@ class ScanOdometry:
         odometry pose at its time (odometry frame) and the robot's (speed m/s, turn rate
         rad/s) then."""
         odom = np.asarray(odom, dtype=float)
-        wheel = np.zeros(3) if self._odom_prev is None else _between(self._odom_prev, odom)
+        wheel = np.zeros(3) if self._odom_prev is None else between_poses(self._odom_prev, odom)
         self._odom_prev = odom
         first = not self._started
         self._started = True
-        guess = _compose(self._rel, wheel)
+        guess = compose_poses(self._rel, wheel)
         m = None
         usable = points is not None and len(points) > 0
         if self.p.matching and usable and self._ref is not None:
@@ -210,7 +188,7 @@ class ScanOdometry:
             scan = relative_pose(m.pose, cov)
         self._ref_speed = speed
         self._ref = None
-        self._chain = _compose(self._chain, guess)
+        self._chain = compose_poses(self._chain, guess)
         if usable:
             self._recent.append((self._chain, points))
         if self.p.matching and self._recent:
@@ -227,9 +205,9 @@ class ScanOdometry:
         pts, origins = [], []
         o = np.array([[self.origin[0], self.origin[1]]])
         for pose, p in self._recent:
-            rel = _between(here, pose)
-            pts.append(_place(rel, p))
-            origins.append(np.repeat(_place(rel, o), len(p), axis=0))
+            rel = between_poses(here, pose)
+            pts.append(transform_points(rel, p))
+            origins.append(np.repeat(transform_points(rel, o), len(p), axis=0))
         if len(pts) == 1:
             return Reference.build(pts[0], self.mp, self.origin)
         return Reference.build(np.vstack(pts), self.mp, np.vstack(origins))

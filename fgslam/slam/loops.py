@@ -35,6 +35,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.stats import chi2
 
+from factors.geometry import between_poses, compose_poses, invert_pose, transform_points
 from factors.odometry import relative_pose
 from fgslam.scanmatch import MatchParams, Reference, match
 from fgslam.slam.keyframes import _key, timing_inflation
@@ -101,38 +102,7 @@ class Closure:
         }
 
 
-def _place(pose: NDArray[np.float64], pts: NDArray[np.float64]) -> NDArray[np.float64]:
-    c, s = math.cos(pose[2]), math.sin(pose[2])
-    return np.column_stack(
-        [pose[0] + c * pts[:, 0] - s * pts[:, 1], pose[1] + s * pts[:, 0] + c * pts[:, 1]]
-    )
-
-
-def _in_frame(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Pose b in the frame of pose a."""
-    c, s = math.cos(a[2]), math.sin(a[2])
-    dx, dy = b[0] - a[0], b[1] - a[1]
-    th = math.atan2(math.sin(b[2] - a[2]), math.cos(b[2] - a[2]))
-    return np.array([c * dx + s * dy, -s * dx + c * dy, th])
-
-
 AWAITING = "awaiting confirmation"
-
-
-def _compose(a, b) -> NDArray[np.float64]:
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return np.array(
-        [
-            a[0] + c * b[0] - s * b[1],
-            a[1] + s * b[0] + c * b[1],
-            math.remainder(a[2] + b[2], 2 * math.pi),
-        ]
-    )
-
-
-def _invert(a) -> NDArray[np.float64]:
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return np.array([-c * a[0] - s * a[1], s * a[0] - c * a[1], -a[2]])
 
 
 def see_through(query: NDArray[np.float64], ref: NDArray[np.float64], pose, margin: float) -> float:
@@ -231,9 +201,11 @@ class LoopCloser:
         parts, origins = [], []
         for i in range(j - self.p.neighbours, j + self.p.neighbours + 1):
             if i in self.scans and i < len(poses):
-                rel = _in_frame(poses[j], poses[i])
-                parts.append(_place(rel, self.scans[i]))
-                origins.append(np.repeat(_place(rel, self.origin), len(self.scans[i]), axis=0))
+                rel = between_poses(poses[j], poses[i])
+                parts.append(transform_points(rel, self.scans[i]))
+                origins.append(
+                    np.repeat(transform_points(rel, self.origin), len(self.scans[i]), axis=0)
+                )
         return np.vstack(parts), np.vstack(origins)
 
     def try_close(self, k: int, backend, pose) -> list[Closure]:
@@ -275,11 +247,11 @@ class LoopCloser:
         for c1 in self.pending:
             if c1.k == c2.k:
                 continue
-            old = _in_frame(poses[c1.j], poses[c2.j])
-            new = _in_frame(poses[c1.k], pose) if c1.k < len(poses) else None
+            old = between_poses(poses[c1.j], poses[c2.j])
+            new = between_poses(poses[c1.k], pose) if c1.k < len(poses) else None
             if new is None:
                 continue
-            pred = _compose(_compose(_invert(old), c1.pose), new)
+            pred = compose_poses(compose_poses(invert_pose(old), c1.pose), new)
             d = c2.pose - pred
             dth = math.remainder(d[2], 2 * math.pi)
             if math.hypot(d[0], d[1]) <= p.pair_xy and abs(dth) <= p.pair_theta:

@@ -27,6 +27,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import NDArray
 
+from factors.geometry import compose_poses
 from factors.odometry import integrate_poses, preintegrate
 from fgslam.config import RobotConfig, match_params
 from fgslam.config import keyframe_params as config_keyframe_params
@@ -555,17 +556,7 @@ def _scan_poses(times, poses, between) -> tuple[NDArray[np.float64], NDArray[np.
     if not rows:
         return times.copy(), poses.copy()
     k = np.array([r[1] for r in rows])
-    rel = np.array([r[2] for r in rows])
-    base = poses[k]
-    c, s = np.cos(base[:, 2]), np.sin(base[:, 2])
-    th = base[:, 2] + rel[:, 2]
-    placed = np.column_stack(
-        [
-            base[:, 0] + c * rel[:, 0] - s * rel[:, 1],
-            base[:, 1] + s * rel[:, 0] + c * rel[:, 1],
-            np.arctan2(np.sin(th), np.cos(th)),
-        ]
-    )
+    placed = compose_poses(poses[k], np.array([r[2] for r in rows]))
     t = np.concatenate([times, [r[0] for r in rows]])
     p = np.vstack([poses, placed])
     order = np.argsort(t, kind="stable")
