@@ -61,8 +61,17 @@ def test_run_scan_matching_options(short_log, tmp_path, capsys):
     args = ["run", str(short_log), "--backend", "isam2", "--sensors", "laser"]
     assert (
         main(
-            [*args, "--odometry", "wheels", "--keyframes", "every-scan", "--loops", "off"]
-            + ["--out", str(paper)]
+            [
+                *args,
+                "--odometry",
+                "wheels",
+                "--keyframes",
+                "every-scan",
+                "--loops",
+                "off",
+                "--out",
+                str(paper),
+            ]
         )
         == 0
     )
