@@ -119,3 +119,24 @@ def test_graph_relative_covariance_by_monte_carlo(j):
     emp = np.cov(samples.T)
     assert np.allclose(samples.mean(axis=0), 0.0, atol=4 * np.sqrt(np.diag(C) / n) + 1e-4)
     assert np.allclose(emp, C, atol=0.06 * np.abs(C).max())
+
+
+def test_pose_helpers_agree_with_gtsam():
+    """factors.geometry's vectorised SE(2) helpers against gtsam.Pose2, across the wrap."""
+    from factors.geometry import between_poses, compose_poses, invert_pose, transform_points
+
+    rng = np.random.default_rng(9)
+    a = rng.uniform([-5, -5, -np.pi], [5, 5, np.pi], (50, 3))
+    b = rng.uniform([-5, -5, -np.pi], [5, 5, np.pi], (50, 3))
+    c, d = compose_poses(a, b), between_poses(a, b)
+    for i in range(50):
+        A, B = gtsam.Pose2(*a[i]), gtsam.Pose2(*b[i])
+        for got, want in ((c[i], A.compose(B)), (d[i], A.between(B))):
+            assert np.allclose(got[:2], [want.x(), want.y()], atol=1e-12)
+            assert abs(np.remainder(got[2] - want.theta() + np.pi, 2 * np.pi) - np.pi) < 1e-12
+            assert -np.pi <= got[2] <= np.pi
+        inv = A.inverse()
+        assert np.allclose(invert_pose(a[i])[:2], [inv.x(), inv.y()], atol=1e-12)
+        p = rng.normal(size=(4, 2))
+        want = np.array([A.transformFrom(q) for q in p])
+        assert np.allclose(transform_points(a[i], p), want, atol=1e-12)
