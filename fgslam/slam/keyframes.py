@@ -1,15 +1,15 @@
 """Scan odometry and the keyframe policy (DESIGN 5b; beyond the paper).
 
-Every laser scan is matched (:mod:`fgslam.scanmatch`) against a local map of the last few
-keyframes' scans in the last keyframe's frame, the match started from the wheel odometry
-since the previous scan; that carries the pose forward
-between keyframes. A scan becomes a keyframe when the robot has moved ``distance`` or turned
-``angle`` since the last keyframe, when its overlap with the keyframe's scan falls below
-``min_overlap``, or when the last keyframe tracked too few of its features in the map (the
-SLAM step reports that through :meth:`ScanOdometry.map_support`). With the policy
-``every-scan`` (the paper's) every scan is a keyframe. At a keyframe the match against the
-previous keyframe is the scan constraint between the two (relative pose and covariance, GTSAM's
-between convention), the wheel odometry the other.
+Every laser scan is matched (:mod:`fgslam.scanmatch`) against the last keyframe's scan (or a
+local map of the last ``local_map`` keyframes' scans in its frame), the match started from the
+wheel odometry since the previous scan; that carries the pose forward between keyframes. A
+scan becomes a keyframe when the robot has moved ``distance`` or turned ``angle`` since the
+last keyframe, when its overlap with the keyframe's scan falls below ``min_overlap``, or when
+the last keyframe tracked too few of its features in the map (the SLAM step reports that
+through :meth:`ScanOdometry.map_support`). With the policy ``every-scan`` (the paper's) every
+scan is a keyframe. At a keyframe the match against the previous keyframe is the scan
+constraint between the two (relative pose and covariance, GTSAM's between convention), the
+wheel odometry the other.
 
 Frames: points in the robot frame (m); poses (x, y, theta) in m, rad; ``rel`` is the scan's
 pose in the frame of the last keyframe.
@@ -131,7 +131,6 @@ class ScanOdometry:
         self._odom_prev: NDArray[np.float64] | None = None
         self._low_support = False
         self._started = False
-        self.keyframe_points: NDArray[np.float64] | None = None
         self._chain = np.zeros(3)  # the keyframe's pose along the scan-odometry chain
         self._recent: deque = deque(maxlen=params.local_map)  # (chain pose, points)
 
@@ -193,7 +192,6 @@ class ScanOdometry:
             self._recent.append((self._chain, points))
         if self.p.matching and self._recent:
             self._ref = self._local_map()
-        self.keyframe_points = points if usable else None
         self._rel = np.zeros(3)
         self._low_support = False
         return ScanStep(True, guess.copy(), scan, m, speed)
