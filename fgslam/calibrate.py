@@ -58,7 +58,8 @@ def _samples_and_reference(log: str, reference: str, options: dict[str, Any]):
 def relative_motions(reference: str | Path, **reader_options: Any) -> NDArray[np.float64]:
     """Rows ``(t1, t2, x, y, yaw)`` from a relations file, or from consecutive poses of a TUM
     file or a log with truth/reference poses."""
-    from fgslam.dense import _between, read_relations
+    from factors.geometry import between_poses
+    from fgslam.dense import read_relations
     from fgslam.evaluate_cli import load_reference
 
     p = Path(reference)
@@ -68,7 +69,7 @@ def relative_motions(reference: str | Path, **reader_options: Any) -> NDArray[np
         except (OSError, ValueError) as exc:
             raise UserError(f"{reference}: not a relations file ({exc})") from None
     t, poses, _, _ = load_reference(p, **reader_options)
-    d = _between(poses[:-1], poses[1:])
+    d = between_poses(poses[:-1], poses[1:])
     return np.column_stack([t[:-1], t[1:], d])
 
 
@@ -155,13 +156,14 @@ def calibrate(
             f"{reference}: no relative motion of at most {max_span:g} s within the log's "
             "odometry: nothing to calibrate against"
         )
-    from fgslam.dense import _at, _between, odometry_path
+    from factors.geometry import between_poses
+    from fgslam.dense import _at, odometry_path
 
     before = cfg.odometry.params()
     ok, P0, C = motion_covariances(samples, pairs, before)
     pairs, P0, C = pairs[ok], P0[ok], C[ok]
     ot, op = odometry_path(samples, cfg.odometry.wheelbase)
-    d_odo = _between(_at(ot, op, pairs[:, 0]), _at(ot, op, pairs[:, 1]))
+    d_odo = between_poses(_at(ot, op, pairs[:, 0]), _at(ot, op, pairs[:, 1]))
     e = pairs[:, 2:5] - d_odo
     e[:, 2] = wrap_angles(e[:, 2])
     alphas = fit_alphas(e, C)
