@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 from scipy.stats import chi2
 
+from factors.geometry import between_poses as _between
 from factors.geometry import wrap_angles
 from factors.odometry import COVARIANCE_FLOOR
 from fgslam.calibrate import (
@@ -28,7 +29,7 @@ from fgslam.calibrate import (
     motion_covariances,
     relative_motions,
 )
-from fgslam.dense import _at, _between, odometry_path
+from fgslam.dense import _at, odometry_path
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
 LOGS = {
