@@ -458,12 +458,8 @@ def combine_motions(
 ) -> tuple[Preintegrated, bool]:
     """The one relative motion a filter predicts with from wheel odometry and a scan match:
     their fusion (:func:`fuse_motions`) when their squared Mahalanobis distance is within
-    ``gate``; else, not knowing which is wrong (wheels slip, a scan match along a corridor
-    can be off), the scan match with its covariance grown by the disagreement (xi xi^T, xi
-    the difference in the tangent at the scan match), so that the landmarks can still pull
-    the pose to either. Returns the motion and whether the two agreed."""
+    ``gate``, else the scan match alone (wheels slip; a scan match already passed its own
+    checks). Returns the motion and whether the two agreed."""
     if motion_mahalanobis(wheels, scan) <= gate:
         return fuse_motions(wheels, scan), True
-    xi = scan.delta.localCoordinates(wheels.delta)
-    d = scan.delta
-    return relative_pose([d.x(), d.y(), d.theta()], scan.covariance + np.outer(xi, xi)), False
+    return scan, False

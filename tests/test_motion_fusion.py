@@ -69,15 +69,13 @@ def test_fusion_equals_the_two_factor_graph():
         assert np.allclose(cov, f.covariance, rtol=0.02, atol=0.01 * np.abs(cov).max())
 
 
-def test_combine_keeps_the_scan_but_covers_the_wheels_when_they_disagree():
+def test_combine_takes_the_scan_when_they_disagree():
     C = np.diag([0.01, 0.01, 0.005]) ** 2
     wheels = relative_pose([0.5, 0.0, 0.0], C)
     scan = relative_pose([0.8, 0.0, 0.3], C)  # 30 sigma apart: the wheels slipped
     assert motion_mahalanobis(wheels, scan) > 100
     m, agreed = combine_motions(wheels, scan, 7.8)
-    assert not agreed and m.delta.equals(scan.delta, 1e-12)
-    # the covariance grown to cover the wheels: they are within 2 sigma of the result
-    assert motion_mahalanobis(wheels, m) < 4.0 and np.all(np.diag(m.covariance) > np.diag(C))
+    assert not agreed and m is scan
     near = relative_pose([0.505, 0.0, 0.002], C)
     m, agreed = combine_motions(wheels, near, 7.8)
     assert agreed
