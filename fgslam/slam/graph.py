@@ -3,8 +3,10 @@ Levenberg-Marquardt smoothing of the whole graph (offline).
 
 Variables: robot poses X(k) (``Pose2``), landmarks L(id): lines ``Vector2`` (alpha, d),
 corners ``Pose2``, points ``Point2``. Factors: a prior on the first pose, preintegrated
-odometry (``BetweenFactorPose2``), the landmark factors of ``factors`` and the merge ties,
-both with the robust noise model of the backend (one policy for iSAM2 and batch).
+odometry and the scan match between keyframes (``BetweenFactorPose2``; robust when both are
+there), verified loop closures (robust ``BetweenFactorPose2``), the landmark factors of
+``factors`` and the merge ties, both with the robust noise model of the backend (one policy
+for iSAM2 and batch).
 
 Association uses the current estimate and the *exact* joint marginal covariance of the last
 pose and the candidate landmarks (``ISAM2.jointMarginalCovariance``), propagated through the
