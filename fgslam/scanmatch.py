@@ -558,6 +558,24 @@ class _Icp:
     Jt: NDArray  # (m, 3) normal-noise part of J (1-sigma): E[J J^T] = J0 J0^T + Jt Jt^T
 
 
+def _correspond(ref: Reference, q: NDArray, pose: NDArray, params: MatchParams) -> tuple:
+    """Point-to-line correspondences of the query points (query frame) placed at ``pose``:
+    the rotation R, the indices of the query points with a neighbour within
+    ``corr_distance`` that has a normal, their neighbours ``jj`` (for every query point),
+    the neighbours' normals (every query point) and the signed residuals (m) of ``idx``."""
+    assert ref.tree is not None
+    R = _rot(float(pose[2]))
+    p = q @ R.T + pose[:2]
+    d, j = ref.tree.query(p, distance_upper_bound=params.corr_distance)
+    ok = np.isfinite(d)
+    jj = np.where(ok, j, 0)
+    nrm = ref.normals[jj]
+    ok &= np.isfinite(nrm[:, 0])
+    idx = np.flatnonzero(ok)
+    r = np.einsum("ij,ij->i", nrm[idx], p[idx] - ref.anchors[jj[idx]])
+    return R, idx, jj, nrm, r
+
+
 def _icp(ref: Reference, q: NDArray, pose0: NDArray, params: MatchParams) -> _Icp:
     pose = pose0.astype(float).copy()
     sigma = max(params.sigma_range, 1e-4)
@@ -567,19 +585,10 @@ def _icp(ref: Reference, q: NDArray, pose0: NDArray, params: MatchParams) -> _Ic
     it = 0
     assert ref.tree is not None
     for it in range(1, params.icp_iterations + 1):  # noqa: B007
-        R = _rot(float(pose[2]))
-        p = q @ R.T + pose[:2]
-        d, j = ref.tree.query(p, distance_upper_bound=params.corr_distance)
-        ok = np.isfinite(d)
-        jj = np.where(ok, j, 0)
-        nrm = ref.normals[jj]
-        ok &= np.isfinite(nrm[:, 0])
-        if ok.sum() < 3:
+        R, idx, jj, nrm, r = _correspond(ref, q, pose, params)
+        if len(idx) < 3:
             break
-        idx = np.flatnonzero(ok)
-        nrm = nrm[idx]
-        r = np.einsum("ij,ij->i", nrm, p[idx] - ref.anchors[jj[idx]])
-        nb = nrm @ R  # normal in the query frame: n^T R
+        nb = nrm[idx] @ R  # normal in the query frame: n^T R
         J = np.column_stack([nb, np.einsum("ij,ij->i", nb, jq[idx])])
         # residual scale: robust (MAD), never below the sensor's
         mad = 1.4826 * float(np.median(np.abs(r)))
@@ -599,15 +608,7 @@ def _icp(ref: Reference, q: NDArray, pose0: NDArray, params: MatchParams) -> _Ic
             converged = True
             break
     # final correspondences at the estimate: inliers
-    R = _rot(float(pose[2]))
-    p = q @ R.T + pose[:2]
-    d, j = ref.tree.query(p, distance_upper_bound=params.corr_distance)
-    ok = np.isfinite(d)
-    jj = np.where(ok, j, 0)
-    nrm = ref.normals[jj]
-    ok &= np.isfinite(nrm[:, 0])
-    idx = np.flatnonzero(ok)
-    r = np.einsum("ij,ij->i", nrm[idx], p[idx] - ref.anchors[jj[idx]])
+    R, idx, jj, nrm, r = _correspond(ref, q, pose, params)
     if len(r):
         sigma = max(params.sigma_range, 1.4826 * float(np.median(np.abs(r))))
     inl = np.abs(r) < params.inlier_sigmas * sigma
