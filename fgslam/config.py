@@ -197,7 +197,11 @@ class ScanMatchConfig:
     - ``loop_closures``: ``on`` or ``off`` (graph backends; an EKF keeps no past poses);
       candidates within ``loop_radius`` m and ``loop_min_travel`` m of path behind;
     - ``match_resolution`` (m): the correlative search's finest grid, 0 derived from the
-      laser (:func:`match_params`).
+      laser (:func:`match_params`);
+    - ``model_error_xy`` (m), ``model_error_theta_deg``: the model error every scan match's
+      covariance gets on top of its residual-based part (surfaces the two scans sample at
+      other places, clutter that is not a line); negative: derived from the laser (half a
+      grid cell, one beam; measured on the benchmark's relations, experiments/README.md).
     """
 
     odometry: str = "both"
@@ -208,6 +212,8 @@ class ScanMatchConfig:
     loop_radius: float = 4.0
     loop_min_travel: float = 8.0
     match_resolution: float = 0.0
+    model_error_xy: float = -1.0
+    model_error_theta_deg: float = -1.0
 
 
 SCANMATCH_CHOICES = {
@@ -286,6 +292,10 @@ def match_params(cfg: RobotConfig) -> Any:
     kw = {}
     if cfg.scanmatch.match_resolution:
         kw["resolution"] = cfg.scanmatch.match_resolution
+    if cfg.scanmatch.model_error_xy >= 0:
+        kw["floor_xy"] = cfg.scanmatch.model_error_xy
+    if cfg.scanmatch.model_error_theta_deg >= 0:
+        kw["floor_theta"] = math.radians(cfg.scanmatch.model_error_theta_deg)
     return MatchParams.for_laser(las.sigma_range, step, las.max_range, **kw)
 
 

@@ -104,6 +104,10 @@ class MatchParams:
     hac_lags: int = 10  # beams over which residuals may be correlated (Newey-West)
     max_kappa: float = 25.0  # cap on the per-axis inflation from correlated residuals
     cov_inflation: float = 1.3  # constant factor on top of the measured per-axis inflation
+    # model error the residuals cannot show (surfaces sampled at other places by the two
+    # scans, clutter that is not a line): independent variance added to every match (m, rad)
+    floor_xy: float = 0.0
+    floor_theta: float = 0.0
     # rejection
     min_points: int = 20  # fewer query or reference points: rejected
     min_score: float = 0.5  # correlative score below: rejected
@@ -127,6 +131,9 @@ class MatchParams:
             "normal_radius": max(0.25, 2.2 * spacing),
         }
         base.update(kw)
+        # model error: half a grid cell and one beam (measured on real logs' relations)
+        base.setdefault("floor_xy", 0.5 * float(base["resolution"]))
+        base.setdefault("floor_theta", abs(float(angular_step)))
         return cls(**base)  # type: ignore[arg-type]
 
 
@@ -716,12 +723,14 @@ def match(
     M_ref = (d * wts[:, None]).T @ d / total
     cov_ref = A @ cov_icp @ A.T + M_ref
     cov_ref = 0.5 * (cov_ref + cov_ref.T)
-    cov = A.T @ cov_ref @ A
-    cov = 0.5 * (cov + cov.T)
     ev = np.linalg.eigvalsh(cov_ref[:2, :2])
     amb = max(
         math.sqrt(max(float(ev[-1]), 0.0)) / wxy, math.sqrt(max(float(cov_ref[2, 2]), 0.0)) / wth
     )
+    floor = np.diag([params.floor_xy**2, params.floor_xy**2, params.floor_theta**2])
+    cov_ref = cov_ref + floor  # isotropic in xy: the same in either frame
+    cov = A.T @ cov_ref @ A
+    cov = 0.5 * (cov + cov.T)
     moved = pose - start
     moved[2] = _wrap(float(moved[2]))
     reason = ""
