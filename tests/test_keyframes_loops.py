@@ -82,6 +82,28 @@ def test_keyframes_by_distance_and_scan_odometry_beats_drifting_wheels():
     assert so.stats["keyframes_distance"] == len(kfs) - 1
 
 
+def test_frozen_wheels_that_catch_up_are_bridged_by_the_steady_guess():
+    """Wheel odometry that freezes for five scans and then catches up in one jump (as MIT
+    CSAIL's does): the jump puts the wheels' guess 0.6 m off, outside the search window; the
+    last scan's motion carried on is the guess that matches, and no scan is lost."""
+    rng = np.random.default_rng(7)
+    segs = _room()
+    truth = [np.array([1.0 + 0.12 * i, 3.5, 0.0]) for i in range(30)]
+    so = ScanOdometry(KeyframeParams(distance=1.5), _mp())
+    kf = None
+    for i, p in enumerate(truth):
+        frozen = 10 <= i < 15
+        odom = truth[9] if frozen else p  # the jump comes at scan 15
+        st = so.add(_scan(segs, p, rng), odom - truth[0])
+        if kf is not None:  # rel: in the frame of the keyframe before this scan
+            e = st.rel - between_poses(kf, p)
+            assert math.hypot(e[0], e[1]) < 0.03 and abs(e[2]) < math.radians(0.5), (i, e)
+        if st.keyframe:
+            kf = p
+    assert so.stats["scan_matches_rejected"] == 0
+    assert so.stats["scan_matches_recovered"] >= 1
+
+
 def test_every_scan_policy_and_wheels_only_never_match():
     rng = np.random.default_rng(1)
     segs = _room()
@@ -179,6 +201,29 @@ def test_loop_closure_rejects_a_similar_looking_different_room(place):
         assert sure.accepted, sure
     else:
         assert not c.accepted and c.reason not in ("", AWAITING), c
+
+
+def test_a_closure_the_estimate_is_too_sure_against_waits_for_a_second():
+    """An overconfident estimate (2 mm, 0.05 deg) believes the robot 0.25 m from where it
+    is: the right match is not thrown away as inconsistent but waits for a second closure
+    that agrees (a wrong estimate is what closures are there to mend)."""
+    import gtsam
+
+    rng = np.random.default_rng(5)
+    segs = _room()
+    closer = LoopCloser(LoopParams(), _mp())
+    old = np.array([2.0, 3.0, 0.0])
+    here = old + np.array([0.3, 0.1, 0.05])
+    closer.add_keyframe(0, _scan(segs, old, rng), old)
+    closer.add_keyframe(1, _scan(segs, here, rng), here)
+    believed = between_poses(old, here) + np.array([0.25, 0.0, 0.0])
+    cov = np.diag([0.002, 0.002, math.radians(0.05)]) ** 2
+    c = closer.verify(0, 1, np.array([old]), gtsam.Pose2(*believed), cov)
+    assert c.reason == AWAITING and not c.accepted, c
+    assert c.mahalanobis2 > 30.0  # outside the 99.9 % gate (16.3)
+    assert closer.stats["loop_doubt_inconsistent_with_the_estimate"] == 1
+    e = c.pose - between_poses(old, here)
+    assert math.hypot(e[0], e[1]) < 0.03
 
 
 def test_an_uncertain_closure_enters_only_with_a_second_that_agrees():
