@@ -6,19 +6,21 @@ most ``max_candidates``). The current scan is matched against a local map of the
 scan and its ``neighbours`` keyframes either side (placed in the candidate's frame with their
 current estimates), searched around the backend's relative pose within a window sized by
 that pose's uncertainty (3 sigma, clamped). A closure is accepted only when it is verified:
-the match passes its own checks, its score and overlap reach the stricter loop thresholds,
-the current scan does not see through the old place's surfaces (negative information: at
-most ``max_see_through`` of the local map's points that lie in the scan's view are behind
-its returns by more than ``see_through_margin``; a similar-looking room with one thing moved
-fails here), and it agrees with the backend's relative pose and covariance (chi-square gate
-``gate_p`` on the difference). That gate discriminates only when the estimate is sure of
-the relative pose (3 sigma within ``confident_xy`` and ``confident_theta``); a closure over a
-larger uncertainty (the first closure of a long loop, where a similar-looking corridor
-elsewhere would pass) waits for a second one, from a keyframe at most ``confirm_window``
+the match passes its own checks and the current scan does not see through the old place's
+surfaces (negative information: at most ``grey_see_through`` of the local map's points that
+lie in the scan's view are behind its returns by more than ``see_through_margin``; a
+similar-looking room with one thing moved fails here). It enters at once only when nothing
+casts doubt on it: its score and overlap reach the stricter loop thresholds, it sees through
+at most ``max_see_through``, it agrees with the backend's relative pose and covariance
+(chi-square gate ``gate_p`` on the difference), and the estimate is sure of the relative
+pose (3 sigma within ``confident_xy`` and ``confident_theta``). A closure in doubt (the first
+closure of a long loop, where a similar-looking corridor elsewhere would pass; one that an
+overconfident estimate calls inconsistent: on the real logs every such rejection was right,
+experiments/README.md) waits for a second one, from a keyframe at most ``confirm_window``
 later, that agrees with it through the estimate's local geometry (both old keyframes in the
 old map, both new ones along the new chain: within ``pair_xy`` and ``pair_theta``); then both
-enter. A false match rarely repeats consistently. Accepted closures enter
-the graph as robust between factors. Every attempt is kept in :attr:`LoopCloser.closures`
+enter. A false match rarely repeats consistently. Accepted closures enter the graph as
+robust between factors. Every attempt is kept in :attr:`LoopCloser.closures`
 (report.json, map.png).
 
 Frames: scan points in the robot frame (m); poses (x, y, theta) in the world (m, rad).
@@ -60,6 +62,8 @@ class LoopParams:
     gate_p: float = 0.999
     see_through_margin: float = 0.3
     max_see_through: float = 0.05
+    grey_see_through: float = 0.10
+    doubt: bool = True  # False: weak, seeing-through and inconsistent closures are rejected
     confident_xy: float = 0.3
     confident_theta: float = math.radians(3.0)
     confirm_window: int = 10
@@ -290,13 +294,15 @@ class LoopCloser:
         if not m.ok:
             c.reason = m.reason or "match rejected"
             return c
+        doubt = []  # passed, but only a second closure that agrees may confirm it
         if m.score < p.min_score or m.overlap < p.min_overlap:
-            c.reason = "weak match"
-            return c
+            doubt.append("weak match")
         c.see_through = see_through(self.scans[k], ref_points, m.pose, p.see_through_margin)
-        if c.see_through > p.max_see_through:
+        if c.see_through > p.grey_see_through:
             c.reason = "sees through the old place"
             return c
+        if c.see_through > p.max_see_through:
+            doubt.append("sees through a little")
         meas = relative_pose(m.pose, cov)
         xi = rel.localCoordinates(meas.delta)
         S = np.asarray(rel_cov) + meas.covariance
@@ -305,9 +311,15 @@ class LoopCloser:
         except np.linalg.LinAlgError:
             c.mahalanobis2 = math.inf
         if not c.mahalanobis2 <= self._gate:
-            c.reason = "inconsistent with the estimate"
-            return c
+            doubt.append("inconsistent with the estimate")
         if 3.0 * max(sd[0], sd[1]) > p.confident_xy or 3.0 * sd[2] > p.confident_theta:
+            doubt.append("uncertain estimate")
+        if doubt and not p.doubt and doubt != ["uncertain estimate"]:
+            c.reason = next(d for d in doubt if d != "uncertain estimate")
+            return c
+        if doubt:
+            for d in doubt:
+                self.stats[f"loop_doubt_{_key(d)}"] += 1
             c.reason = AWAITING
             return c
         c.accepted = True
