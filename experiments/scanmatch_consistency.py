@@ -39,10 +39,12 @@ import numpy as np
 from scipy.stats import chi2
 
 from factors.geometry import between_poses, compose_poses
+from fgslam import dense
 from fgslam.config import load_config
 from fgslam.scanmatch import MatchParams, Reference, match, scan_points
 from fgslam.sim.sensors import SimParams, laser_scan
 from fgslam.sim.world import load_world
+from fgslam.slam.keyframes import KeyframeParams
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
 
@@ -56,9 +58,10 @@ def simulated_nees(n: int, seed: int) -> list[str]:
     mount = (las.mount.x, las.mount.y, math.radians(las.mount.yaw_deg))
     world = load_world("corridor")
     sim = SimParams()
-    base = MatchParams.for_laser(
+    floored = MatchParams.for_laser(
         las.sigma_range, math.radians(las.fov_deg / (las.n_beams - 1)), las.max_range
     )
+    base = dataclasses.replace(floored, floor_xy=0.0, floor_theta=0.0)
 
     def scan(pose, rng):
         r = laser_scan(world, las, sim, tuple(compose_poses(pose, mount)), -1000.0, rng)
@@ -92,8 +95,9 @@ def simulated_nees(n: int, seed: int) -> list[str]:
             guess = d + np.array([rng.normal(0, 0.1), rng.normal(0, 0.1), rng.normal(0, 0.05)])
             cases.append((scan(a, rng), scan(compose_poses(a, d), rng), d, guess))
         for label, params in (
-            ("", base),
-            (" (cov_inflation 1)", dataclasses.replace(base, cov_inflation=1.0)),
+            (" (no floor)", base),
+            (" (no floor, cov_inflation 1)", dataclasses.replace(base, cov_inflation=1.0)),
+            (" (default: with the model-error floor)", floored),
         ):
             nees, ok, err = [], [], []
             for ref_pts, q, d, guess in cases:
@@ -158,11 +162,13 @@ def read_log(path: Path, limit: int | None = None):
     return ranges, np.array(poses), guesses
 
 
-def real_consecutive(path: Path, limit: int | None, reference: bool) -> tuple[str, list[float]]:
+def real_consecutive(
+    path: Path, limit: int | None, reference: bool, **thresholds: float
+) -> tuple[str, list[float]]:
     ranges, poses, guesses = read_log(path, limit)
     n = len(ranges[0])
     bearings = np.linspace(-math.pi / 2, math.pi / 2, n)
-    params = MatchParams.for_laser(0.01, math.pi / (n - 1), 30.0)
+    params = MatchParams.for_laser(0.01, math.pi / (n - 1), 30.0, **thresholds)
     pts = [scan_points(r, bearings, max_range=params.max_range) for r in ranges]
     err, odo, ok, ms = [], [], [], []
     reasons: dict[str, int] = {}
@@ -186,18 +192,21 @@ def real_consecutive(path: Path, limit: int | None, reference: bool) -> tuple[st
             odo.append(o)
     ok = np.array(ok)
     name = path.name.split(".")[0]
+    if thresholds:
+        name += " (" + ", ".join(f"{k} {v}" for k, v in thresholds.items()) + ")"
     why = ", ".join(f"{v} {k}" for k, v in sorted(reasons.items())) or "-"
     if not reference:
         return (
-            f"| {name} ({n} beams) | {len(ok)} | {ok.mean():.2f} ({why}) | - | - | - | - | - |",
+            f"| {name} ({n} beams) | {len(ok)} | {ok.mean():.2f} ({why}) | - | - | - | - | - | - |",
             ms,
         )
     err, odo = np.array(err)[ok], np.array(odo)[ok]
     tr, rot = np.hypot(err[:, 0], err[:, 1]), np.degrees(np.abs(err[:, 2]))
     otr, orot = np.hypot(odo[:, 0], odo[:, 1]), np.degrees(np.abs(odo[:, 2]))
     within = np.mean((tr < 0.05) & (rot < 1.0))
+    wrong = int(np.sum((tr > 0.1) | (rot > 2.0)))
     return (
-        f"| {name} ({n} beams) | {len(ok)} | {ok.mean():.2f} ({why}) | "
+        f"| {name} ({n} beams) | {len(ok)} | {ok.mean():.2f} ({why}) | {wrong} | "
         f"{100 * tr.mean():.1f} / {100 * np.median(tr):.1f} / {100 * np.quantile(tr, 0.9):.1f} | "
         f"{rot.mean():.2f} / {np.median(rot):.2f} / {np.quantile(rot, 0.9):.2f} | {within:.2f} | "
         f"{100 * otr.mean():.1f} | {orot.mean():.2f} |",
@@ -205,12 +214,70 @@ def real_consecutive(path: Path, limit: int | None, reference: bool) -> tuple[st
     )
 
 
-def wrong_places(path: Path, seed: int, pairs: int = 80) -> str:
+def relations_nees(path: Path, relations: Path, pairs: int = 300, seed: int = 1) -> list[str]:
+    """NEES of matches between scans the benchmark's relations (hand-verified relative
+    poses) join, at most 1 m apart: the matcher's covariance with and without the
+    model-error floor of ``MatchParams.for_laser``. Guess: the relation off by N(0, 5 cm)
+    in x, y and N(0, 0.03 rad)."""
+    op = gzip.open if path.suffix == ".gz" else open
+    ranges, stamps = [], []
+    with op(path, "rt") as f:
+        for line in f:
+            t = line.split()
+            if t and t[0] == "FLASER":
+                n = int(t[1])
+                v = np.array(t[2 : n + 9], dtype=float)
+                r = v[:n].copy()
+                r[r >= 80.0] = np.nan
+                ranges.append(r)
+                stamps.append(v[n + 6])
+    stamps = np.array(stamps)
+    n = len(ranges[0])
+    bearings = np.linspace(-math.pi / 2, math.pi / 2, n)
+    floored = MatchParams.for_laser(0.01, math.pi / (n - 1), 80.0)
+    variants = {"no floor": dataclasses.replace(floored, floor_xy=0.0, floor_theta=0.0)}
+    variants["floor (default)"] = floored
+    rng = np.random.default_rng(seed)
+    nees: dict[str, list[float]] = {k: [] for k in variants}
+    err = []
+    for t1, t2, x, y, th in dense.read_relations(relations):
+        if math.hypot(x, y) > 1.0:
+            continue
+        i, j = (int(np.argmin(np.abs(stamps - t))) for t in (t1, t2))
+        if abs(stamps[i] - t1) > 1e-3 or abs(stamps[j] - t2) > 1e-3:
+            continue
+        truth = np.array([x, y, th])
+        ref = Reference.build(scan_points(ranges[i], bearings), floored, origins=(0.0, 0.0))
+        q = scan_points(ranges[j], bearings)
+        guess = truth + rng.normal(0.0, [0.05, 0.05, 0.03])
+        for key, params in variants.items():
+            m = match(ref, q, guess, params)
+            if m.ok:
+                e = gtsam.Pose2.Logmap(gtsam.Pose2(*m.pose).between(gtsam.Pose2(*truth)))
+                nees[key].append(float(e @ np.linalg.solve(m.cov, e)))
+                if key == "no floor":
+                    err.append(e)
+        if len(err) >= pairs:
+            break
+    name = path.name.split(".")[0]
+    if not err:
+        return [f"| {name} | 0 | | | | |"]
+    e = np.array(err)
+    rxy, rth = np.sqrt(np.mean(e[:, :2] ** 2)), np.sqrt(np.mean(e[:, 2] ** 2))
+    rms = f"{100 * rxy:.1f} / {np.degrees(rth):.2f}"
+    return [
+        f"| {name} | {key} | {len(v)} | {np.mean(v):.1f} | {np.median(v):.2f} | "
+        f"{np.mean(np.array(v) < chi2.ppf(0.95, 3)):.2f} | {rms} |"
+        for key, v in nees.items()
+    ]
+
+
+def wrong_places(path: Path, seed: int, pairs: int = 80, **thresholds: float) -> str:
     """Scans of places at least 4 m apart matched with the identity as the guess."""
     ranges, poses, _ = read_log(path, 1500)
     n = len(ranges[0])
     bearings = np.linspace(-math.pi / 2, math.pi / 2, n)
-    params = MatchParams.for_laser(0.01, math.pi / (n - 1), 30.0)
+    params = MatchParams.for_laser(0.01, math.pi / (n - 1), 30.0, **thresholds)
     pts = [scan_points(r, bearings, max_range=params.max_range) for r in ranges]
     rng = np.random.default_rng(seed)
     score, ok = [], []
@@ -222,8 +289,11 @@ def wrong_places(path: Path, seed: int, pairs: int = 80) -> str:
         m = match(Reference.build(pts[i], params, origins=(0.0, 0.0)), pts[j], np.zeros(3), params)
         score.append(m.score)
         ok.append(m.ok)
+    name = path.name.split(".")[0]
+    if thresholds:
+        name += " (" + ", ".join(f"{k} {v}" for k, v in thresholds.items()) + ")"
     return (
-        f"| {path.name.split('.')[0]} | {pairs} | {np.mean(ok):.3f} | "
+        f"| {name} | {pairs} | {np.mean(ok):.3f} | "
         f"{np.median(score):.2f} / {np.quantile(score, 0.9):.2f} / {np.max(score):.2f} |"
     )
 
@@ -281,12 +351,17 @@ def main() -> None:
 
     print("\n### Real consecutive scans against the reference (corrected) poses\n")
     print(
-        "| log | pairs | accepted | trans err mean / median / p90 (cm) "
+        "| log | pairs | accepted | accepted but > 10 cm or > 2 deg off "
+        "| trans err mean / median / p90 (cm) "
         "| rot err mean / median / p90 (deg) | within 5 cm and 1 deg | odometry trans err "
         "(cm) | odometry rot err (deg) |"
     )
-    print("|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|")
     times = {}
+    odometry = {  # the scan odometry's thresholds (KeyframeParams)
+        "min_score": KeyframeParams.min_score,
+        "min_overlap": KeyframeParams.min_overlap,
+    }
     for name, limit, ref in (
         ("intel-corrected.log.gz", None, True),
         ("freiburg-079-corrected.log.gz", args.freiburg, True),
@@ -294,11 +369,27 @@ def main() -> None:
     ):
         path = DATA / name
         if not path.exists():
-            print(f"| {name} | absent | | | | | | |")
+            print(f"| {name} | absent | | | | | | | |")
             continue
         row, ms = real_consecutive(path, limit, ref)
         print(row)
         times[name.split(".")[0]] = ms
+        print(real_consecutive(path, limit, ref, **odometry)[0])
+
+    print("\n### NEES against the benchmark's relations (scans at most 1 m apart)\n")
+    print(
+        "| log | covariance | pairs | mean NEES | median (3 dof: 2.37) | below 7.81 "
+        "| error rms x-y (cm) / heading (deg) |"
+    )
+    print("|---|---|---|---|---|---|---|")
+    for name, rel in (
+        ("mit-csail.clf", "mit-csail.relations"),
+        ("intel-corrected.log.gz", "intel-corrected.relations"),
+        ("freiburg-079-corrected.log.gz", "freiburg-079-corrected.relations"),
+    ):
+        if (DATA / name).exists():
+            for row in relations_nees(DATA / name, DATA / rel, seed=args.seed):
+                print(row)
 
     print("\n### Scans of different places (>= 4 m apart, identity guess): wrongly accepted\n")
     print("| log | pairs | accepted | score median / p90 / max |")
@@ -306,6 +397,7 @@ def main() -> None:
     for name in ("intel-corrected.log.gz", "freiburg-079-corrected.log.gz"):
         if (DATA / name).exists():
             print(wrong_places(DATA / name, args.seed))
+            print(wrong_places(DATA / name, args.seed, **odometry))
 
     print("\n### Time per match (ms)\n")
     print("| case | matches | median | p90 | max |")
