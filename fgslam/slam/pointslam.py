@@ -29,6 +29,7 @@ from fgslam.slam.backend import Backend
 from fgslam.slam.ekf import EkfBackend
 from fgslam.slam.graph import GraphBackend
 from fgslam.slam.mapping import MapParams
+from fgslam.slam.point_calibration import Scales, scaled_covariance
 from fgslam.slam.step import SlamStep
 
 BACKENDS = ("ekf", "isam2", "batch")
@@ -57,6 +58,8 @@ class PointSlamResult:
     stats: Counter = field(default_factory=Counter)
     # own association: the landmark id each sighting went to (-1: none), in file order
     assigned: list[tuple[int, int]] = field(default_factory=list)  # (given index, own id)
+    # own association: (pose index, position in that pose's sightings, own id or -1)
+    sighting_ids: list[tuple[int, int, int]] = field(default_factory=list)
 
 
 def _pre(delta: NDArray[np.float64], cov: NDArray[np.float64]) -> Preintegrated:
@@ -77,12 +80,13 @@ def run_points(
     association: str = "given",
     map_params: MapParams | None = None,
     limit: int | None = None,
-    odometry_scale: float = 1.0,
+    odometry_scale: Scales = 1.0,
     robust: str | None = None,
 ) -> PointSlamResult:
     """Run one backend over the steps (the first ``limit`` of them, if given), the odometry
-    covariances multiplied by ``odometry_scale``; ``robust``: the graph's kernel (default
-    :class:`GraphBackend`'s)."""
+    covariances' variances multiplied by ``odometry_scale`` (one factor, or x, y, theta:
+    :func:`~fgslam.slam.point_calibration.scaled_covariance`); ``robust``: the graph's
+    kernel (default :class:`GraphBackend`'s)."""
     if backend not in BACKENDS:
         raise ValueError(f"unknown backend {backend!r}; expected one of {BACKENDS}")
     if association not in ASSOCIATIONS:
@@ -97,6 +101,7 @@ def run_points(
     index = [steps[0].i]
     odo = [np.zeros(3)]
     assigned: list[tuple[int, int]] = []
+    where_of: list[tuple[int, int, int]] = []  # (pose index, position, own id)
     t_start = time.perf_counter()
 
     def keyframe(k: int, pose_index: int, pre: Preintegrated | None) -> None:
@@ -108,14 +113,13 @@ def run_points(
         given = [s.landmark for s in sights] if association == "given" else None
         where = step.keyframe(float(k), feats, pre, np.zeros(3), given)
         if given is None:  # resolved at the end (a tentative's sightings count if confirmed)
-            assigned.extend(
-                (s.landmark, -1 if lid is None else lid)
-                for s, lid in zip(sights, where, strict=True)
-            )
+            for q, (s, lid) in enumerate(zip(sights, where, strict=True)):
+                assigned.append((s.landmark, -1 if lid is None else lid))
+                where_of.append((pose_index, q, -1 if lid is None else lid))
 
     keyframe(0, steps[0].i, None)
     for k, st in enumerate(steps, 1):
-        keyframe(k, st.j, _pre(st.delta, st.cov * odometry_scale))
+        keyframe(k, st.j, _pre(st.delta, scaled_covariance(st.cov, odometry_scale)))
         index.append(st.j)
         p = odo[-1]
         c, s = np.cos(p[2]), np.sin(p[2])
@@ -139,6 +143,7 @@ def run_points(
         return o if lms[o].active else -1
 
     assigned = [(g, final(o)) for g, o in assigned]
+    where_of = [(i, q, final(o)) for i, q, o in where_of]
     if backend == "batch":
         be.run_batch()  # type: ignore[attr-defined]
     traj = be.finish()
@@ -158,6 +163,7 @@ def run_points(
         latencies=step.latencies,
         stats=stats,
         assigned=assigned,
+        sighting_ids=where_of,
     )
 
 
