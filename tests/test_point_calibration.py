@@ -16,6 +16,7 @@ from fgslam.slam.point_calibration import (
     self_calibrate,
     sighting_nll,
 )
+from fgslam.slam.pointslam import association_agreement, run_points
 
 STATED = np.diag([0.02, 0.01, 0.002]) ** 2  # the covariance every step claims
 
@@ -100,8 +101,14 @@ def test_fit_recovers_per_component_scales():
 
 def test_self_calibration_with_own_association():
     """From the stated (25x too small) covariance, own association and refits settle near
-    the true scale."""
+    the true scale; the point path runs with it on request ("self")."""
     data = park(25.0, seed=3)
     cal = self_calibrate(data, rounds=4)
     assert abs(math.log(cal.scale[0] / 25.0)) < math.log(1.5), cal.history
     assert cal.history[0]["scale_used"] == [1.0, 1.0, 1.0]
+    r = run_points(data, "ekf", "own", odometry_scale="self", limit=100)
+    assert r.odometry_scale[0] > 3.0  # calibrated on the first 100 steps, not the stated 1
+    assert association_agreement(r.assigned)["purity"] == 1.0
+    assert np.all(run_points(data, "ekf", "given", limit=10).odometry_scale == 1.0)
+    with pytest.raises(ValueError, match="odometry_scale"):
+        run_points(data, "ekf", "own", odometry_scale="hand", limit=10)

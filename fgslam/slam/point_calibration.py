@@ -179,7 +179,7 @@ def self_calibrate(
     s = np.broadcast_to(np.asarray(start, dtype=float), (3,)).copy()
     cal = Calibration(s)
     for _ in range(rounds):
-        r = run_points(data, "ekf", "own", map_params, limit=limit, odometry_scale=s)
+        r = run_points(data, "ekf", "own", map_params, limit=limit, odometry_scale=s.copy())
         assoc = association_of(r.sighting_ids)
         new = fit_scale(data, assoc, per_component, limit)
         nll, m = sighting_nll(data, assoc, new, limit)
