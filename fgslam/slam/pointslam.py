@@ -10,6 +10,13 @@ Association is either the file's (``"given"``: the landmark index) or the projec
 (``"own"``: the association and landmark lifecycle of a laser run, with the backend's
 joint covariance). Both go through :class:`~fgslam.slam.step.SlamStep`, the SLAM step of
 every run. The keyframe "time" is the pose index.
+
+Odometry noise: the file's step covariances, their variances scaled by ``odometry_scale``;
+``"self"`` scales them by the self-calibration
+(:func:`~fgslam.slam.point_calibration.self_calibrate`: maximum likelihood of the sightings'
+innovations on the own association, alternated with it; nothing of the given association).
+Not the default: on Victoria Park it measured worse than the hand factor 100
+(experiments/README.md).
 """
 
 from __future__ import annotations
@@ -29,6 +36,7 @@ from fgslam.slam.backend import Backend
 from fgslam.slam.ekf import EkfBackend
 from fgslam.slam.graph import GraphBackend
 from fgslam.slam.mapping import MapParams
+from fgslam.slam.point_calibration import Scales, scaled_covariance, self_calibrate
 from fgslam.slam.step import SlamStep
 
 BACKENDS = ("ekf", "isam2", "batch")
@@ -57,6 +65,9 @@ class PointSlamResult:
     stats: Counter = field(default_factory=Counter)
     # own association: the landmark id each sighting went to (-1: none), in file order
     assigned: list[tuple[int, int]] = field(default_factory=list)  # (given index, own id)
+    # own association: (pose index, position in that pose's sightings, own id or -1)
+    sighting_ids: list[tuple[int, int, int]] = field(default_factory=list)
+    odometry_scale: NDArray[np.float64] = field(default_factory=lambda: np.ones(3))
 
 
 def _pre(delta: NDArray[np.float64], cov: NDArray[np.float64]) -> Preintegrated:
@@ -77,16 +88,24 @@ def run_points(
     association: str = "given",
     map_params: MapParams | None = None,
     limit: int | None = None,
-    odometry_scale: float = 1.0,
+    odometry_scale: Scales | str = 1.0,
     robust: str | None = None,
 ) -> PointSlamResult:
     """Run one backend over the steps (the first ``limit`` of them, if given), the odometry
-    covariances multiplied by ``odometry_scale``; ``robust``: the graph's kernel (default
-    :class:`GraphBackend`'s)."""
+    covariances' variances multiplied by ``odometry_scale`` (one factor, or x, y, theta:
+    :func:`~fgslam.slam.point_calibration.scaled_covariance`; ``"self"``: the
+    self-calibration's, on the own association);
+    ``robust``: the graph's kernel (default :class:`GraphBackend`'s). The scales used are
+    in the result's ``odometry_scale``."""
     if backend not in BACKENDS:
         raise ValueError(f"unknown backend {backend!r}; expected one of {BACKENDS}")
     if association not in ASSOCIATIONS:
         raise ValueError(f"unknown association {association!r}; expected one of {ASSOCIATIONS}")
+    if isinstance(odometry_scale, str):
+        if odometry_scale != "self":
+            raise ValueError(f"odometry_scale: a number, three or 'self', not {odometry_scale!r}")
+        odometry_scale = self_calibrate(data, limit=limit, map_params=map_params).scale
+    scale = np.broadcast_to(np.asarray(odometry_scale, dtype=float), (3,)).copy()
     if backend == "ekf":  # a given association is trusted: the EKF's gate is for its own
         be: Backend = EkfBackend(gate_p=None if association == "given" else 0.9999)
     else:
@@ -97,6 +116,7 @@ def run_points(
     index = [steps[0].i]
     odo = [np.zeros(3)]
     assigned: list[tuple[int, int]] = []
+    where_of: list[tuple[int, int, int]] = []  # (pose index, position, own id)
     t_start = time.perf_counter()
 
     def keyframe(k: int, pose_index: int, pre: Preintegrated | None) -> None:
@@ -108,14 +128,13 @@ def run_points(
         given = [s.landmark for s in sights] if association == "given" else None
         where = step.keyframe(float(k), feats, pre, np.zeros(3), given)
         if given is None:  # resolved at the end (a tentative's sightings count if confirmed)
-            assigned.extend(
-                (s.landmark, -1 if lid is None else lid)
-                for s, lid in zip(sights, where, strict=True)
-            )
+            for q, (s, lid) in enumerate(zip(sights, where, strict=True)):
+                assigned.append((s.landmark, -1 if lid is None else lid))
+                where_of.append((pose_index, q, -1 if lid is None else lid))
 
     keyframe(0, steps[0].i, None)
     for k, st in enumerate(steps, 1):
-        keyframe(k, st.j, _pre(st.delta, st.cov * odometry_scale))
+        keyframe(k, st.j, _pre(st.delta, scaled_covariance(st.cov, scale)))
         index.append(st.j)
         p = odo[-1]
         c, s = np.cos(p[2]), np.sin(p[2])
@@ -139,6 +158,7 @@ def run_points(
         return o if lms[o].active else -1
 
     assigned = [(g, final(o)) for g, o in assigned]
+    where_of = [(i, q, final(o)) for i, q, o in where_of]
     if backend == "batch":
         be.run_batch()  # type: ignore[attr-defined]
     traj = be.finish()
@@ -158,6 +178,8 @@ def run_points(
         latencies=step.latencies,
         stats=stats,
         assigned=assigned,
+        sighting_ids=where_of,
+        odometry_scale=scale,
     )
 
 
