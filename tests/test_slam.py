@@ -60,7 +60,12 @@ def test_consistent_when_the_errors_match_the_models():
     from fgslam.sim.simulate import events, plan_run
     from fgslam.sim.world import parse_world
 
+    import dataclasses
+
     cfg = load_config()
+    # nor the scan matches' model-error floor (errors of real surfaces the simulator has not)
+    sm = dataclasses.replace(cfg.scanmatch, model_error_xy=0.0, model_error_theta_deg=0.0)
+    cfg = dataclasses.replace(cfg, scanmatch=sm)
     w = parse_world(ROOM, "room")
     p = SimParams(
         radius_error_right=0,
