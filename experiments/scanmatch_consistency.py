@@ -41,6 +41,7 @@ from scipy.stats import chi2
 from factors.geometry import between_poses, compose_poses
 from fgslam import dense
 from fgslam.config import load_config
+from fgslam.readers.carmen import flaser_scans
 from fgslam.scanmatch import MatchParams, Reference, match, scan_points
 from fgslam.sim.sensors import SimParams, laser_scan
 from fgslam.sim.world import load_world
@@ -219,19 +220,8 @@ def relations_nees(path: Path, relations: Path, pairs: int = 300, seed: int = 1)
     poses) join, at most 1 m apart: the matcher's covariance with and without the
     model-error floor of ``MatchParams.for_laser``. Guess: the relation off by N(0, 5 cm)
     in x, y and N(0, 0.03 rad)."""
-    op = gzip.open if path.suffix == ".gz" else open
-    ranges, stamps = [], []
-    with op(path, "rt") as f:
-        for line in f:
-            t = line.split()
-            if t and t[0] == "FLASER":
-                n = int(t[1])
-                v = np.array(t[2 : n + 9], dtype=float)
-                r = v[:n].copy()
-                r[r >= 80.0] = np.nan
-                ranges.append(r)
-                stamps.append(v[n + 6])
-    stamps = np.array(stamps)
+    scans = flaser_scans(path)
+    ranges, stamps = scans["ranges"], scans["t"]
     n = len(ranges[0])
     bearings = np.linspace(-math.pi / 2, math.pi / 2, n)
     floored = MatchParams.for_laser(0.01, math.pi / (n - 1), 80.0)

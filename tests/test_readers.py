@@ -132,6 +132,22 @@ def test_carmen_corrected_log(tmp_path):
         assert (e.x, e.y, e.theta) == pytest.approx(p)
 
 
+def test_flaser_scans_reads_the_raw_scans(tmp_path):
+    """The scans of a log as arrays (for experiments): every FLASER in order, its stamp and
+    both pose fields; no-return (80 m and beyond) is NaN; ``limit`` stops early."""
+    from fgslam.readers.carmen import flaser_scans
+
+    f = tmp_path / "room.log"
+    f.write_text(carmen_text(corrected=True))
+    sc = flaser_scans(f)
+    assert sc["ranges"].shape == (30, 180) and sc["pose"].shape == sc["odom"].shape == (30, 3)
+    np.testing.assert_allclose(sc["t"], 1.0 + np.arange(30))
+    np.testing.assert_allclose(sc["pose"], path(30), atol=1e-5)
+    events = [e for e in open_log(f) if isinstance(e, LaserScan)]
+    np.testing.assert_array_equal(np.isnan(sc["ranges"][0]), np.isnan(events[0].ranges))
+    assert flaser_scans(f, limit=4)["t"].shape == (4,)
+
+
 def test_carmen_raw_log(tmp_path):
     """A raw log: ODOM lines are cumulative odometry; no reference; increments recovered."""
     f = tmp_path / "raw.log.gz"

@@ -329,24 +329,6 @@ def test_real_consecutive_intel_scans_agree_with_reference_poses():
     assert good >= 0.75 * ok, (good, ok)
 
 
-def read_flaser(path: Path, limit: int) -> tuple[list[np.ndarray], np.ndarray]:
-    """Ranges (NaN = no return) and timestamps of a CARMEN log's FLASER lines."""
-    ranges, stamps = [], []
-    with open(path) as f:
-        for line in f:
-            t = line.split()
-            if t and t[0] == "FLASER":
-                n = int(t[1])
-                v = np.array(t[2 : n + 9], dtype=float)
-                r = v[:n].copy()
-                r[r >= 80.0] = np.nan
-                ranges.append(r)
-                stamps.append(v[n + 6])
-                if len(ranges) >= limit:
-                    break
-    return ranges, np.array(stamps)
-
-
 @pytest.mark.skipif(not MIT.exists(), reason="shared MIT CSAIL log absent")
 def test_model_error_floor_on_real_relations():
     """The benchmark's hand-verified relations (Kümmerle et al. 2009) between MIT CSAIL scans
@@ -354,8 +336,10 @@ def test_model_error_floor_on_real_relations():
     (median NEES far above 3 dof's 2.37); with the floor ``for_laser`` derives from the
     sensor (half a grid cell, one beam) it is consistent."""
     from fgslam.dense import read_relations
+    from fgslam.readers.carmen import flaser_scans
 
-    ranges, stamps = read_flaser(MIT, 700)
+    scans = flaser_scans(MIT, 700)
+    ranges, stamps = scans["ranges"], scans["t"]
     n = len(ranges[0])
     bearings = np.linspace(-math.pi / 2, math.pi / 2, n)
     floored = MatchParams.for_laser(0.01, math.pi / (n - 1), 80.0)

@@ -543,6 +543,31 @@ def odometry_check(path: StrPath) -> dict[str, np.ndarray]:
     return {k: np.array(v) for k, v in out.items()}
 
 
+def flaser_scans(path: StrPath, limit: int | None = None) -> dict[str, np.ndarray]:
+    """The ``FLASER`` records of a CARMEN log in file order, unchecked (for experiments and
+    tests on the raw scans): ``ranges`` (N, n) in m with NaN for no return (80 m and beyond),
+    ``t`` (N,) their stamps, ``pose`` and ``odom`` (N, 3) the two pose fields."""
+    ranges, t, pose, odom = [], [], [], []
+    for _, text in open_lines(path):
+        f = text.split()
+        if not f or f[0] != "FLASER":
+            continue
+        rec = parse_record(f)
+        r = np.asarray(rec["ranges"], dtype=float)
+        ranges.append(np.where(r >= 80.0, np.nan, r))
+        t.append(rec["t"])
+        pose.append(rec["pose"])
+        odom.append(rec["odom"])
+        if limit is not None and len(t) >= limit:
+            break
+    return {
+        "ranges": np.array(ranges),
+        "t": np.array(t),
+        "pose": np.array(pose).reshape(-1, 3),
+        "odom": np.array(odom).reshape(-1, 3),
+    }
+
+
 def odometry_chain(path: StrPath, mode: str = "auto") -> OdometryChain:
     """The log's odometry record by record in file order, for the relations benchmark
     (:class:`fgslam.dense.OdometryChain`): every scan and ``ODOM`` line with its own stamp and
