@@ -153,3 +153,18 @@ def test_pregate_residuals_of_many_measurements_equal_those_one_at_a_time(kind, 
         assert got.shape == (m, n, dimz)
         for z, g in zip(Z, got, strict=True):
             np.testing.assert_array_equal(g, models.residuals(kind, pose, lms, z))
+
+
+def test_segment_overlap_equals_the_projection_along_the_line():
+    """geometry.overlap in scalars equals the overlap of the sorted projections
+    (:func:`geometry.along`) to rounding, lines in either parametrisation."""
+    from fgslam.slam import geometry
+
+    rng = np.random.default_rng(5)
+    for _ in range(2000):
+        lm = rng.uniform([-math.pi, -8], [math.pi, 8])
+        ends, meas = rng.uniform(-8, 8, (2, 2, 2))
+        a, b = np.sort(geometry.along(lm, ends)), np.sort(geometry.along(lm, meas))
+        want = min(a[1], b[1]) - max(a[0], b[0])
+        assert geometry.overlap(lm, ends, meas) == pytest.approx(want, abs=1e-12)
+    assert geometry.overlap(lm, None, meas) == 0.0

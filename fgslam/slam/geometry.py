@@ -67,8 +67,15 @@ def overlap(
     ``meas`` (world ends); negative: the gap between them. A map line without ends: 0."""
     if ends is None:
         return 0.0
-    a, b = np.sort(along(lm, ends)), np.sort(along(lm, meas))
-    return float(min(a[1], b[1]) - max(a[0], b[0]))
+    # :func:`along` in scalars (called for every line pairing the association tries)
+    a, d = float(lm[0]), float(lm[1])
+    c, s = math.cos(a), math.sin(a)
+    fx, fy = d * c, d * s
+    a0 = (float(ends[0][0]) - fx) * -s + (float(ends[0][1]) - fy) * c
+    a1 = (float(ends[1][0]) - fx) * -s + (float(ends[1][1]) - fy) * c
+    b0 = (float(meas[0][0]) - fx) * -s + (float(meas[0][1]) - fy) * c
+    b1 = (float(meas[1][0]) - fx) * -s + (float(meas[1][1]) - fy) * c
+    return min(max(a0, a1), max(b0, b1)) - max(min(a0, a1), min(b0, b1))
 
 
 def union(
