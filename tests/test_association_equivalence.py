@@ -168,3 +168,24 @@ def test_segment_overlap_equals_the_projection_along_the_line():
         want = min(a[1], b[1]) - max(a[0], b[0])
         assert geometry.overlap(lm, ends, meas) == pytest.approx(want, abs=1e-12)
     assert geometry.overlap(lm, None, meas) == 0.0
+
+
+@pytest.mark.parametrize("kind", ["line", "corner", "point"])
+def test_duplicate_pregate_differences_of_many_landmarks_at_once(kind):
+    """The duplicate pre-gate's differences of several landmarks at once equal, bit for bit,
+    those of each alone, and the scalar difference (either line parametrisation) to
+    rounding."""
+    from fgslam.slam.lifecycle import _difference, _differences
+
+    rng = np.random.default_rng(11)
+    dim = models.DIM[kind]
+    for _ in range(30):
+        A = rng.uniform([-math.pi, -8, -math.pi], [math.pi, 8, math.pi], (5, 3))[:, :dim]
+        M = rng.uniform([-math.pi, -8, -math.pi], [math.pi, 8, math.pi], (12, 3))[:, :dim]
+        M[0] = A[0]
+        got = _differences(kind, A, M)
+        assert got.shape == (5, 12, dim)
+        for a, g in zip(A, got, strict=True):
+            np.testing.assert_array_equal(g, _differences(kind, a, M))
+            want = np.array([_difference(kind, a, m)[0] for m in M])
+            np.testing.assert_allclose(g, want, atol=1e-9)

@@ -126,7 +126,7 @@ class GraphBackend(Backend):
         self._pose_pred = np.zeros(3)
         self._pre: Preintegrated | None = None
         self._est = gtsam.Values()
-        self._est_poses = np.zeros((0, 3))  # keyframe poses of _est
+        self._est_poses: NDArray[np.float64] | None = np.zeros((0, 3))  # of _est (None: to do)
         self._means: dict[int, NDArray[np.float64]] = {}
         self._touched: set[int] = set()
         self._loop_added = False
@@ -179,6 +179,14 @@ class GraphBackend(Backend):
     def keyframe_poses(self) -> NDArray[np.float64]:
         """(x, y, theta) of every keyframe before the current one, world: the cached estimate
         (refreshed every ``refresh_every`` keyframes), the filtered poses after it."""
+        if self._est_poses is None:  # read from _est when first needed after a refresh
+            poses = []
+            for k in range(len(self.times)):
+                if not self._est.exists(X(k)):
+                    break
+                p = self._est.atPose2(X(k))
+                poses.append((p.x(), p.y(), p.theta()))
+            self._est_poses = np.array(poses, dtype=float).reshape(-1, 3)
         cached = self._est_poses
         newer = [p for _, p, _ in self.trajectory[len(cached) :]]
         return np.vstack([cached, np.array(newer, dtype=float).reshape(-1, 3)])
@@ -225,13 +233,7 @@ class GraphBackend(Backend):
 
     def _refresh_means(self) -> None:
         self._means = {lid: self._mean(lid) for lid in self.kinds if self._est.exists(L(lid))}
-        poses = []
-        for k in range(len(self.times)):
-            if not self._est.exists(X(k)):
-                break
-            p = self._est.atPose2(X(k))
-            poses.append((p.x(), p.y(), p.theta()))
-        self._est_poses = np.array(poses, dtype=float).reshape(-1, 3)
+        self._est_poses = None  # keyframe_poses reads them from _est when asked
 
     def estimate(self, lids: list[int]) -> Estimate:
         """Means and world-frame joint covariance of [predicted pose, landmarks] (fresh: solved

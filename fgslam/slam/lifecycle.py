@@ -87,15 +87,17 @@ def _difference(kind: str, a: NDArray[np.float64], b: NDArray[np.float64]):
 
 
 def _differences(kind: str, a: NDArray[np.float64], M: NDArray[np.float64]) -> NDArray[np.float64]:
-    """:func:`_difference` of ``a`` against each row of ``M`` (no Jacobians), vectorised."""
-    E = a[None, :] - M
+    """:func:`_difference` of ``a`` (dim,) or of each row of ``a`` (q, dim) against each row
+    of ``M`` (no Jacobians), vectorised: (n, dim) or (q, n, dim)."""
+    a = np.asarray(a, dtype=float)
+    E = a[..., None, :] - M
     if kind == "line":
-        da = wrap_angles(E[:, 0])
+        da = wrap_angles(E[..., 0])
         f = flips(da)
-        E[:, 0] = np.where(f, wrap_angles(da - math.pi), da)
-        E[:, 1] = np.where(f, a[1] + M[:, 1], E[:, 1])
+        E[..., 0] = np.where(f, wrap_angles(da - math.pi), da)
+        E[..., 1] = np.where(f, a[..., None, 1] + M[:, 1], E[..., 1])
     elif kind == "corner":
-        E[:, 2] = wrap_angles(E[:, 2])
+        E[..., 2] = wrap_angles(E[..., 2])
     return E
 
 
@@ -255,16 +257,25 @@ class Lifecycle:
                 by_kind.setdefault(lm.kind, ([], []))[0].append(lid)
         for kind, (ids, _) in list(by_kind.items()):
             by_kind[kind] = (ids, np.array([means[i] for i in ids], dtype=float))
+        # the pre-gate of every queried landmark of a kind against all of its kind at once
+        near: dict[int, NDArray[np.intp]] = {}
+        queried = [a for a in lids if a in means and self.landmarks[a].active]
+        for kind, (_, M) in by_kind.items():
+            qs = [a for a in queried if self.landmarks[a].kind == kind]
+            if not qs:
+                continue
+            E = _differences(kind, np.array([means[a] for a in qs], dtype=float), M)
+            lim = np.where(models.ANGULAR[kind], p.duplicate_pregate_rad, p.duplicate_pregate_m)
+            for a, ok in zip(qs, np.all(np.abs(E) <= lim, axis=2), strict=True):
+                near[a] = np.flatnonzero(ok)
         out: list[tuple[int, int]] = []
         done: set[int] = set()
         for a in lids:
             la = self.landmarks[a]
             if a not in means or a in done or not la.active:
                 continue
-            ids, M = by_kind[la.kind]
-            E = _differences(la.kind, np.asarray(means[a], dtype=float), M)
-            lim = np.where(models.ANGULAR[la.kind], p.duplicate_pregate_rad, p.duplicate_pregate_m)
-            for j in np.flatnonzero(np.all(np.abs(E) <= lim, axis=1)):
+            ids, _ = by_kind[la.kind]
+            for j in near[a]:
                 b = ids[j]
                 lb = self.landmarks[b]
                 if b == a or b in done:
