@@ -189,3 +189,57 @@ def test_duplicate_pregate_differences_of_many_landmarks_at_once(kind):
             np.testing.assert_array_equal(g, _differences(kind, a, M))
             want = np.array([_difference(kind, a, m)[0] for m in M])
             np.testing.assert_allclose(g, want, atol=1e-9)
+
+
+def _update_line_ends_reference(ends, lm, f, pose, big, small):
+    """geometry.update_line_ends as of d4a6cdb (numpy projections), the reference."""
+    from fgslam.slam import geometry as g
+
+    meas = g.measured_ends(f, pose)
+    s = g.along(lm, meas)
+    if f.endpoints is None:
+        if ends is None:
+            return g.on_line(lm, s)
+        e = g.along(lm, ends)
+        return g.on_line(lm, np.array([min(e.min(), s.min()), max(e.max(), s.max())]))
+    conds = [f.start, f.end]
+    order = np.argsort(s)
+    (s0, c0), (s1, c1) = (s[order[0]], conds[order[0]]), (s[order[1]], conds[order[1]])
+    if ends is None:
+        return g.on_line(lm, np.array([s0, s1]))
+    e0, e1 = np.sort(g.along(lm, ends))
+    return g.on_line(
+        lm,
+        np.array([g._move(e0, s0, c0, True, big, small), g._move(e1, s1, c1, False, big, small)]),
+    )
+
+
+def test_segment_end_updates_equal_the_numpy_projections():
+    """The scalar end rules (update_line_ends, reproject) equal the numpy reference to
+    rounding: laser segments with every end condition, sonar planes, no map ends yet."""
+    from fgslam.slam import geometry
+
+    rng = np.random.default_rng(13)
+    conds = [None, *End]
+    for _ in range(3000):
+        lm = rng.uniform([-math.pi, 0.0], [math.pi, 8])
+        pose = rng.uniform([-3, -3, -math.pi], [3, 3, math.pi])
+        ends = None if rng.random() < 0.2 else rng.uniform(-8, 8, (2, 2))
+        z = rng.uniform([-math.pi, 0.5], [math.pi, 6])
+        if rng.random() < 0.2:
+            f = Feature("line", z, np.eye(2), "sonar")
+        else:
+            c0, c1 = rng.choice(len(conds), 2)
+            f = Feature(
+                "line", z, np.eye(2), "laser", rng.uniform(-6, 6, (2, 2)), conds[c0], conds[c1]
+            )
+        if ends is not None:
+            np.testing.assert_allclose(
+                geometry.reproject(lm, ends),
+                geometry.on_line(lm, geometry.along(lm, ends)),
+                atol=1e-12,
+            )
+            ends = geometry.reproject(lm, ends)
+        got = geometry.update_line_ends(ends, lm, f, pose, 0.5, 0.1)
+        want = _update_line_ends_reference(ends, lm, f, pose, 0.5, 0.1)
+        np.testing.assert_allclose(got, want, atol=1e-12)
