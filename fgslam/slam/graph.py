@@ -68,17 +68,17 @@ class GraphBackend(Backend):
     Noise policy (one for iSAM2 and batch, which share the graph): landmark factors and
     merge factors carry a robust noise model with kernel ``robust`` (models.m_estimator;
     "none": Gaussian); a merge is a robust tie of sigma ``merge_sigma`` (m, rad), never a
-    hard equality. After the last keyframe, :meth:`finish` calls ``update()`` until the
-    estimate moves less than ``converge_tol`` (or ``max_final_updates`` calls), so iSAM2's
-    final estimate is at the optimum. Relinearisation during the run: every
-    ``relinearize_skip`` updates, of the variables whose step exceeds
-    ``relinearize_threshold`` (GTSAM's 0.1: fast). That leaves variables with smaller steps at
-    old linearisation points, and with robust kernels their weights too (on Victoria Park's
-    first 300 steps: 12-18 cm from the batch optimum). So :meth:`finish` relinearises in full
-    once (a new ISAM2 over the same factors from the current estimate, threshold
-    ``final_threshold``, 0.01) and updates until no variable moves by ``converge_tol``
-    (experiments/README.md: 0.001 and 1e-5 cost 3 s more on 200 s of the corridor for
-    1.5 cm closer to batch on Victoria Park).
+    hard equality. Relinearisation during the run: every ``relinearize_skip`` updates, of the
+    variables whose step exceeds ``relinearize_threshold`` (GTSAM's 0.1: fast). That leaves
+    variables with smaller steps at old linearisation points, and with robust kernels their
+    weights too (on Victoria Park's first 300 steps: 12-18 cm from the batch optimum). So
+    after the last keyframe :meth:`finish` relinearises the whole graph at the current
+    estimate and takes Gauss-Newton steps (every factor linearised, one sparse solve) until
+    no variable moves by ``converge_tol`` (or ``max_final_updates`` steps), so iSAM2's final
+    estimate is at the optimum. (Until d4a6cdb: a new ISAM2 over the same factors, threshold
+    0.01, updated until converged; its first update alone, a full elimination inside iSAM2,
+    cost ~1 s of CPU on 200 s of the corridor against ~0.1 s per Gauss-Newton step, and it
+    stopped further from the optimum: experiments/README.md.)
 
     :meth:`means` is a cache: refreshed in full every ``refresh_every`` keyframes, and for the
     landmarks each keyframe touched; association uses it only to pick candidates (a loose
@@ -94,10 +94,9 @@ class GraphBackend(Backend):
         merge_sigma: float = 0.01,
         relinearize_threshold: float = 0.1,
         relinearize_skip: int = 10,
-        final_threshold: float = 0.01,
         refresh_every: int = 10,
         max_final_updates: int = 20,
-        converge_tol: float = 1e-4,
+        converge_tol: float = 0.01,
         loop_updates: int = 2,
     ) -> None:
         super().__init__()
@@ -110,7 +109,7 @@ class GraphBackend(Backend):
         self.converge_tol = converge_tol
         self.loop_updates = loop_updates
         self.final_updates = 0
-        self.final_threshold = final_threshold
+        self._final = False  # _est is the converged final estimate
         self.failed: str | None = None
         self._start_cov = np.eye(3)
         params = gtsam.ISAM2Params()
@@ -338,9 +337,8 @@ class GraphBackend(Backend):
         dims = {X(k): 3 for k in range(len(self.times))}
         dims.update({L(lid): models.DIM[kind] for lid, kind in self.kinds.items()})
         try:
-            self._est, self.batch_iterations = levenberg_marquardt(
-                self.graph, self.isam.calculateEstimate(), dims
-            )
+            start = self._est if self._final else self.isam.calculateEstimate()
+            self._est, self.batch_iterations = levenberg_marquardt(self.graph, start, dims)
         except RuntimeError as exc:
             raise BackendError(f"batch optimisation failed: {_reason(exc)}") from None
         self.batch = True
@@ -364,31 +362,29 @@ class GraphBackend(Backend):
         return out
 
     def _converge(self) -> None:
-        """Relinearise the whole graph at the current estimate (one new ISAM2, threshold
-        ``final_threshold``, relinearising at every update), then ``update()`` until the
-        largest change of the estimate (tangent, per component) falls below
-        ``converge_tol``; ``final_updates`` counts the extra updates."""
+        """Gauss-Newton on the whole graph from the current estimate: relinearise every
+        factor, solve, step, until the largest step (tangent, per component) falls below
+        ``converge_tol`` (or ``max_final_updates`` steps); a step that does not lower the
+        graph's error (or a solve that fails) ends it, the estimate before it kept.
+        ``final_updates`` counts the steps taken."""
         est = self.isam.calculateEstimate()
-        params = gtsam.ISAM2Params()
-        params.setRelinearizeThreshold(self.final_threshold)
-        params.relinearizeSkip = 1
-        fresh = gtsam.ISAM2(params)
-        try:
-            fresh.update(self.graph, est)
-        except RuntimeError:  # keep the incremental estimate
-            self._est = est
-            return
-        self.isam = fresh
-        prev = fresh.calculateEstimate()
-        self.final_updates = 1
+        err = self.graph.error(est)
+        self.final_updates = 0
         for _ in range(self.max_final_updates):
-            step = float(np.max(np.abs(est.localCoordinates(prev).vector()), initial=0.0))
-            if step < self.converge_tol:
+            try:
+                delta = self.graph.linearize(est).optimize()
+            except RuntimeError:  # an ill-conditioned graph: keep the estimate so far
                 break
-            fresh.update()
+            new = est.retract(delta)
+            new_err = self.graph.error(new)
+            if not new_err <= err:
+                break
+            est, err = new, new_err
             self.final_updates += 1
-            est, prev = prev, fresh.calculateEstimate()
-        self._est = prev
+            if float(np.max(np.abs(delta.vector()), initial=0.0)) < self.converge_tol:
+                break
+        self._est = est
+        self._final = True
 
     def chi2_per_dof(self, values: gtsam.Values | None = None) -> float:
         """2 x graph error / (measurement dof - variable dof) of ``values`` (default: the
