@@ -294,8 +294,8 @@ def _jcbb(
     if len(set(lids)) == len(lids):
         state = empty
         for i, h in nn.items():
-            state = _extend(state, h, C, features[i].cov)
-            if state is None or state[0] > chi2_gate(state[3], p.gate_p):
+            state = _extend(state, h, C, features[i].cov, p.gate_p)
+            if state is None:
                 break
         else:
             for i, h in nn.items():
@@ -337,11 +337,8 @@ def _jcbb(
         for h in compat[i]:
             if not shareable(i, h.lid, used):
                 continue
-            new = _extend(state, h, C, f.cov)
+            new = _extend(state, h, C, f.cov, p.gate_p)
             if new is None:
-                continue
-            dof = new[3]
-            if new[0] > chi2_gate(dof, p.gate_p):
                 continue
             pairs[i] = h
             used.setdefault(h.lid, []).append(i)
@@ -366,10 +363,11 @@ def _line_of(f: Feature, pose: NDArray[np.float64]) -> NDArray[np.float64]:
     return models.to_world("line", pose, f.z)[0]
 
 
-def _extend(state, h: _Pair, C: NDArray[np.float64], R: NDArray[np.float64]):
+def _extend(state, h: _Pair, C: NDArray[np.float64], R: NDArray[np.float64], gate_p: float):
     """Add pairing ``h`` (its feature's covariance ``R``) to a hypothesis: incremental inverse
     of the joint innovation covariance (block inversion), its blocks taken from ``C``.
-    ``state`` = (d2, e, Sinv, dof, rows of C)."""
+    ``state`` = (d2, e, Sinv, dof, rows of C); None when the joint innovation covariance is
+    singular or the extended hypothesis fails the joint gate (chi-square ``gate_p``)."""
     d2, e, Sinv, dof, rows = state
     m = len(h.e)
     new = list(range(h.row, h.row + m))
@@ -379,7 +377,8 @@ def _extend(state, h: _Pair, C: NDArray[np.float64], R: NDArray[np.float64]):
             Qinv = np.linalg.inv(s)
         except np.linalg.LinAlgError:
             return None
-        return (float(h.e @ Qinv @ h.e), h.e, Qinv, m, new)
+        d2n = float(h.e @ Qinv @ h.e)
+        return None if d2n > chi2_gate(m, gate_p) else (d2n, h.e, Qinv, m, new)
     c = C[rows, h.row : h.row + m]  # cross blocks (m_old, m_new)
     k = Sinv @ c
     Q = s - c.T @ k
@@ -389,6 +388,8 @@ def _extend(state, h: _Pair, C: NDArray[np.float64], R: NDArray[np.float64]):
         return None
     v = h.e - k.T @ e
     d2n = d2 + float(v @ Qinv @ v)
+    if d2n > chi2_gate(dof + m, gate_p):
+        return None  # the inverse of a hypothesis that goes no further is not needed
     kQ = k @ Qinv
     n0 = len(rows)
     S = np.empty((n0 + m, n0 + m))

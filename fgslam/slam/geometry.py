@@ -58,7 +58,14 @@ def measured_ends(f: Feature, pose: NDArray[np.float64]) -> NDArray[np.float64]:
     if f.endpoints is None:
         p = foot_point(pose, f.z)
         return np.array([p, p])
-    return to_world(pose, f.endpoints)
+    (x0, y0), (x1, y1) = f.endpoints  # to_world of two points, in scalars
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    return np.array(
+        [
+            [pose[0] + c * x0 - s * y0, pose[1] + s * x0 + c * y0],
+            [pose[0] + c * x1 - s * y1, pose[1] + s * x1 + c * y1],
+        ]
+    )
 
 
 def overlap(
