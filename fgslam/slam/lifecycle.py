@@ -130,25 +130,25 @@ class Lifecycle:
     ) -> list[Candidate]:
         """Confirmed (and unreliable) landmarks within ``max_range`` of the robot (lines:
         of their segment), from the means given."""
-        ids = [lid for lid, lm in self.landmarks.items() if lm.active and lid in means]
-        return [
-            Candidate(lid, self.landmarks[lid].kind, self.landmarks[lid].ends)
-            for lid in self._near(pose, ids, means)
-        ]
+        lms = [lm for lid, lm in self.landmarks.items() if lm.active and lid in means]
+        return [Candidate(lm.id, lm.kind, lm.ends) for lm in self._near(pose, lms, means)]
 
-    def _near(self, pose, ids: list[int], means) -> list[int]:
-        if not ids:
+    def _near(self, pose, lms: list[Landmark], means) -> list[Landmark]:
+        if not lms:
             return []
-        ends = np.empty((len(ids), 4))
-        for i, lid in enumerate(ids):
-            lm, m = self.landmarks[lid], means[lid]
-            if lm.kind == "line":
-                e = lm.ends if lm.ends is not None else np.vstack([geometry.line_frame(m)[0]] * 2)
-                ends[i] = e.reshape(4)
+        rows = []
+        for lm in lms:
+            m = means[lm.id]
+            if lm.kind != "line":
+                rows.append((m[0], m[1], m[0], m[1]))
+            elif lm.ends is not None:
+                rows.append((lm.ends[0, 0], lm.ends[0, 1], lm.ends[1, 0], lm.ends[1, 1]))
             else:
-                ends[i] = (m[0], m[1], m[0], m[1])
+                foot = geometry.line_frame(m)[0]
+                rows.append((foot[0], foot[1], foot[0], foot[1]))
+        ends = np.array(rows, dtype=float)
         d = geometry.segment_distance(np.asarray(pose[:2], dtype=float), ends)
-        return [lid for lid, di in zip(ids, d, strict=True) if di < self.p.max_range]
+        return [lm for lm, di in zip(lms, d, strict=True) if di < self.p.max_range]
 
     # ------------------------------------------------------------------ tentatives
 
@@ -280,14 +280,14 @@ class Lifecycle:
                 lb = self.landmarks[b]
                 if b == a or b in done:
                     continue
+                pair = (min(a, b), max(a, b))
+                if self.k - self._tested.get(pair, -(10**9)) < p.duplicate_retest:
+                    continue  # failed recently: the joint covariance query is the costly part
                 if la.kind == "line":
                     if la.ends is None or lb.ends is None:
                         continue
                     if geometry.overlap(means[a], la.ends, lb.ends) < -p.max_gap:
                         continue
-                pair = (min(a, b), max(a, b))
-                if self.k - self._tested.get(pair, -(10**9)) < p.duplicate_retest:
-                    continue  # failed recently: the joint covariance query is the costly part
                 m, P = estimate([a, b])
                 e, Hb = _difference(la.kind, m[a], m[b])
                 n = len(e)
