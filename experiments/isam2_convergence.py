@@ -4,7 +4,7 @@ after the last keyframe against batch Levenberg-Marquardt on the same graph.
 Run: python experiments/isam2_convergence.py [--limit N]
 Victoria Park with the given association (a real point-landmark log, robust Cauchy factors),
 through fgslam.slam.pointslam. For each relinearisation policy: iSAM2 as it stands after the
-last keyframe ("as run"), after the final full relinearisation and updates of
+last keyframe ("as run"), after the final Gauss-Newton steps on the whole graph of
 GraphBackend.finish ("converged"), and batch LM from there; the cost is 2 x graph error /
 (measurement dof - variable dof) (robust costs: not exactly chi-square), and the largest
 position difference to batch.

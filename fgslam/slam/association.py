@@ -98,7 +98,7 @@ class _Pair:
     d2: float
     overlap: float
     e: NDArray[np.float64]
-    A: NDArray[np.float64]  # Jacobian w.r.t. the joint state [pose, candidates]
+    row: int  # first row of the pair in the joint covariance C = A P A^T of all pairs
 
 
 def associate(
@@ -117,21 +117,25 @@ def associate(
     out = Association([None] * n, [False] * n, [[] for _ in range(n)], [0.0] * n)
     cand = {c.lid: c for c in candidates if c.lid in means_hint}
     # 1. a loose pre-gate on the (possibly stale) hint: which landmarks to ask the estimate for
-    pre: list[list[int]] = []
+    pre: list[list[int]]
     needed: set[int] = set()
     by_kind: dict[str, tuple[list[int], NDArray[np.float64]]] = {}
     for kind in {f.kind for f in features}:
         lids = [lid for lid, c in cand.items() if c.kind == kind]
         by_kind[kind] = (lids, np.array([means_hint[lid] for lid in lids]))
-    for f in features:
-        lids, M = by_kind[f.kind]
-        rows: list[int] = []
-        if lids:
-            E = models.residuals(f.kind, pose, M, f.z)
-            ok = np.all(np.abs(E) < p.pregate[: len(f.z)], axis=1)
-            rows = [lids[i] for i in np.flatnonzero(ok)]
-            needed.update(rows)
-        pre.append(rows)
+    pre = [[] for _ in features]
+    groups: dict[tuple[str, int], list[int]] = {}  # features by kind and measurement size
+    for i, f in enumerate(features):
+        groups.setdefault((f.kind, len(f.z)), []).append(i)
+    for (kind, dim), idx in groups.items():
+        lids, M = by_kind[kind]
+        if not lids:
+            continue
+        E = models.residuals_grid(kind, pose, M, np.array([features[i].z for i in idx]))
+        ok = np.all(np.abs(E) < p.pregate[:dim], axis=2)
+        for i, row in zip(idx, ok, strict=True):
+            pre[i] = [lids[j] for j in np.flatnonzero(row)]
+            needed.update(pre[i])
     ids = sorted(needed)
     if not ids:
         _near_misses(out, features, [[] for _ in features], [False] * n)
@@ -144,39 +148,45 @@ def associate(
         offs[lid] = o
         o += models.DIM[cand[lid].kind]
     dimx = o
-    # 3. individual compatibility with the fresh means
-    compat: list[list[_Pair]] = []
-    near = [False] * n
+    # 3. individual compatibility with the fresh means. Every (feature, candidate) pair's
+    # Jacobian is a block of rows of one matrix A over the joint state [pose, ids]: one
+    # product C = A P A^T holds every pair's innovation covariance (less R) and every cross
+    # covariance between pairs (JCBB's), instead of one small product per pair.
+    raw: list[tuple[int, int, NDArray[np.float64], int]] = []  # (feature, lid, e, row of C)
+    jac: list[tuple[NDArray[np.float64], NDArray[np.float64], int]] = []
+    r = 0
     for i, (f, rows) in enumerate(zip(features, pre, strict=True)):
-        dim = len(f.z)
-        gate, amb = chi2_gate(dim, p.gate_p), chi2_gate(dim, p.ambiguous_p)
-        hits: list[_Pair] = []
-        meas = geometry.measured_ends(f, pose) if f.kind == "line" else None
         for lid in rows:
-            m = means[lid]
-            e, Hx, Hl = models.residual(f.kind, pose, m, f.z)
-            k, nl = offs[lid], models.DIM[cand[lid].kind]
-            A = np.zeros((dim, dimx))
-            A[:, :3] = Hx
-            A[:, k : k + nl] = Hl
-            idx = [0, 1, 2, *range(k, k + nl)]
-            Ai = A[:, idx]
-            S = Ai @ P[np.ix_(idx, idx)] @ Ai.T + f.cov
-            try:
-                d2 = float(e @ np.linalg.solve(S, e))
-            except np.linalg.LinAlgError:
+            e, Hx, Hl = models.residual(f.kind, pose, means[lid], f.z)
+            raw.append((i, lid, e, r))
+            jac.append((Hx, Hl, offs[lid]))
+            r += len(e)
+    A = np.zeros((r, dimx))
+    for (_, _, e, r0), (Hx, Hl, k) in zip(raw, jac, strict=True):
+        A[r0 : r0 + len(e), :3] = Hx
+        A[r0 : r0 + len(e), k : k + Hl.shape[1]] = Hl
+    C = A @ P @ A.T
+    d2s = _individual_d2(raw, C, features)
+    compat: list[list[_Pair]] = [[] for _ in features]
+    near = [False] * n
+    meas: dict[int, NDArray[np.float64]] = {}
+    for (i, lid, e, r0), d2 in zip(raw, d2s, strict=True):
+        if d2 is None:
+            continue
+        f = features[i]
+        if d2 > chi2_gate(len(f.z), p.gate_p):
+            near[i] |= d2 < chi2_gate(len(f.z), p.ambiguous_p)
+            continue
+        ov = np.inf
+        if f.kind == "line":
+            if i not in meas:
+                meas[i] = geometry.measured_ends(f, pose)
+            ov = _line_overlap(f, means[lid], cand[lid].ends, meas[i], p)
+            if ov is None:
                 continue
-            if d2 > gate:
-                near[i] |= d2 < amb
-                continue
-            ov = np.inf
-            if f.kind == "line":
-                ov = _line_overlap(f, m, cand[lid].ends, meas, p)
-                if ov is None:
-                    continue
-            hits.append(_Pair(lid, d2, ov, e, A))
+        compat[i].append(_Pair(lid, d2, ov, e, r0))
+    for hits in compat:
         hits.sort(key=lambda h: h.d2)
-        compat.append(hits)
         out.compatible.update(h.lid for h in hits)
     # 4. the strategy
     if p.method == "nn":
@@ -184,7 +194,7 @@ def associate(
             if hits:
                 out.pairs[i], out.d2[i] = hits[0].lid, hits[0].d2
     else:
-        _jcbb(out, features, compat, P, pose, p)
+        _jcbb(out, features, compat, C, pose, p, meas)
     # 5. line merges, ambiguities, near misses
     for i, (f, hits) in enumerate(zip(features, compat, strict=True)):
         if f.kind == "line":
@@ -211,6 +221,34 @@ def _near_misses(out: Association, features, compat, near) -> None:
             out.stats[f"{f.kind}s_ambiguous"] += 1
 
 
+def _individual_d2(
+    raw: list[tuple[int, int, NDArray[np.float64], int]],
+    C: NDArray[np.float64],
+    features: list[Feature],
+) -> list[float | None]:
+    """Each pair's Mahalanobis distance e S^-1 e, S = its diagonal block of ``C`` plus the
+    feature's covariance; solved in one batch per dimension (None: S singular)."""
+    out: list[float | None] = [None] * len(raw)
+    for dim in {len(e) for _, _, e, _ in raw}:
+        idx = [j for j, (_, _, e, _) in enumerate(raw) if len(e) == dim]
+        E = np.array([raw[j][2] for j in idx])
+        S = np.array(
+            [C[raw[j][3] : raw[j][3] + dim, raw[j][3] : raw[j][3] + dim] for j in idx]
+        ) + np.array([features[raw[j][0]].cov for j in idx])
+        try:
+            X = np.linalg.solve(S, E[:, :, None])[:, :, 0]
+        except np.linalg.LinAlgError:  # one singular block: solve them one by one
+            for j, e, Sj in zip(idx, E, S, strict=True):
+                try:
+                    out[j] = float(e @ np.linalg.solve(Sj, e))
+                except np.linalg.LinAlgError:
+                    pass
+            continue
+        for j, d2 in zip(idx, np.einsum("ij,ij->i", E, X), strict=True):
+            out[j] = float(d2)
+    return out
+
+
 def _line_overlap(f: Feature, m, ends, meas, p: AssociationParams) -> float | None:
     """Overlap (m) of a measured line with the map segment; None when too far apart. A sonar
     plane has no extent: its foot point must lie within ``sonar_line_gap`` of the segment."""
@@ -229,31 +267,35 @@ def _jcbb(
     out: Association,
     features: list[Feature],
     compat: list[list[_Pair]],
-    P: NDArray[np.float64],
+    C: NDArray[np.float64],
     pose: NDArray[np.float64],
     p: AssociationParams,
+    meas: dict[int, NDArray[np.float64]],
 ) -> None:
-    """Joint compatibility branch and bound over the features with candidates."""
+    """Joint compatibility branch and bound over the features with candidates; ``C``: the
+    joint covariance A P A^T of all pairs (rows ``_Pair.row``); ``meas``: measured world
+    ends of line features, where known."""
     order = [i for i, h in enumerate(compat) if h]
     if not order:
         return
     # measured world segments of line features (for the two-segments-of-one-wall exception)
-    segs = {
-        i: geometry.measured_ends(features[i], pose) for i in order if features[i].kind == "line"
-    }
-    # per pair: A P (rows of the cross covariances), computed once
-    AP = {(i, h.lid): h.A @ P for i in order for h in compat[i]}
+    segs = {i: meas.get(i) for i in order if features[i].kind == "line"}
+    for i in segs:
+        if segs[i] is None:
+            segs[i] = geometry.measured_ends(features[i], pose)
+    apart: dict[tuple[int, int], bool] = {}  # (i, j): segments of i and j apart along i's line
     best: dict = {"n": 0, "d2": np.inf, "pairs": {}}
     nodes = [0]
+    empty = (0.0, None, None, 0, [])  # (d2, e, Sinv, dof, rows of C in order)
     # the common case first: the nearest-neighbour pairing, if mutually exclusive and jointly
     # compatible, pairs every feature that has a candidate: no hypothesis pairs more
     nn = {i: compat[i][0] for i in order}
     lids = [h.lid for h in nn.values()]
     if len(set(lids)) == len(lids):
-        state = (0.0, None, None, 0, [])
+        state = empty
         for i, h in nn.items():
-            state = _extend(state, {}, i, h, AP, features[i].cov, features)
-            if state is None or state[0] > chi2_gate(state[3], p.gate_p):
+            state = _extend(state, h, C, features[i].cov, p.gate_p)
+            if state is None:
                 break
         else:
             for i, h in nn.items():
@@ -270,9 +312,13 @@ def _jcbb(
             return False
         if features[i].endpoints is None:
             return False
-        line = _line_of(features[i], pose)
         for j in others:
-            if features[j].endpoints is None or geometry.overlap(line, segs[j], segs[i]) >= 0.0:
+            if features[j].endpoints is None:
+                return False
+            if (i, j) not in apart:
+                line = _line_of(features[i], pose)
+                apart[i, j] = geometry.overlap(line, segs[j], segs[i]) < 0.0
+            if not apart[i, j]:
                 return False
         return True
 
@@ -291,11 +337,8 @@ def _jcbb(
         for h in compat[i]:
             if not shareable(i, h.lid, used):
                 continue
-            new = _extend(state, pairs, i, h, AP, f.cov, features)
+            new = _extend(state, h, C, f.cov, p.gate_p)
             if new is None:
-                continue
-            dof = new[3]
-            if new[0] > chi2_gate(dof, p.gate_p):
                 continue
             pairs[i] = h
             used.setdefault(h.lid, []).append(i)
@@ -306,7 +349,7 @@ def _jcbb(
         if npairs + len(order) - level - 1 >= max(best["n"], 1) or best["n"] == 0:
             rec(level + 1, pairs, used, state)
 
-    rec(0, {}, {}, (0.0, None, None, 0, []))  # (d2, e, Sinv, dof, pairs in order)
+    rec(0, {}, {}, empty)
     for i, h in best["pairs"].items():
         out.pairs[i], out.d2[i] = h.lid, h.d2
     out.joint_d2 = float(best["d2"]) if best["n"] else 0.0
@@ -320,18 +363,23 @@ def _line_of(f: Feature, pose: NDArray[np.float64]) -> NDArray[np.float64]:
     return models.to_world("line", pose, f.z)[0]
 
 
-def _extend(state, pairs: dict[int, _Pair], i: int, h: _Pair, AP, R, features):
-    """Add pairing (i, h) to a hypothesis: incremental inverse of the joint innovation
-    covariance (block inversion). ``state`` = (d2, e, Sinv, dof, keys)."""
-    d2, e, Sinv, dof, keys = state
-    s = AP[(i, h.lid)] @ h.A.T + R
+def _extend(state, h: _Pair, C: NDArray[np.float64], R: NDArray[np.float64], gate_p: float):
+    """Add pairing ``h`` (its feature's covariance ``R``) to a hypothesis: incremental inverse
+    of the joint innovation covariance (block inversion), its blocks taken from ``C``.
+    ``state`` = (d2, e, Sinv, dof, rows of C); None when the joint innovation covariance is
+    singular or the extended hypothesis fails the joint gate (chi-square ``gate_p``)."""
+    d2, e, Sinv, dof, rows = state
+    m = len(h.e)
+    new = list(range(h.row, h.row + m))
+    s = C[h.row : h.row + m, h.row : h.row + m] + R
     if e is None:
         try:
             Qinv = np.linalg.inv(s)
         except np.linalg.LinAlgError:
             return None
-        return (float(h.e @ Qinv @ h.e), h.e, Qinv, len(h.e), [(i, h)])
-    c = np.vstack([AP[(j, g.lid)] @ h.A.T for j, g in keys])  # cross blocks (m_old, m_new)
+        d2n = float(h.e @ Qinv @ h.e)
+        return None if d2n > chi2_gate(m, gate_p) else (d2n, h.e, Qinv, m, new)
+    c = C[rows, h.row : h.row + m]  # cross blocks (m_old, m_new)
     k = Sinv @ c
     Q = s - c.T @ k
     try:
@@ -340,7 +388,13 @@ def _extend(state, pairs: dict[int, _Pair], i: int, h: _Pair, AP, R, features):
         return None
     v = h.e - k.T @ e
     d2n = d2 + float(v @ Qinv @ v)
+    if d2n > chi2_gate(dof + m, gate_p):
+        return None  # the inverse of a hypothesis that goes no further is not needed
     kQ = k @ Qinv
-    top = np.hstack([Sinv + kQ @ k.T, -kQ])
-    bot = np.hstack([-kQ.T, Qinv])
-    return (d2n, np.concatenate([e, h.e]), np.vstack([top, bot]), dof + len(h.e), [*keys, (i, h)])
+    n0 = len(rows)
+    S = np.empty((n0 + m, n0 + m))
+    S[:n0, :n0] = Sinv + kQ @ k.T
+    S[:n0, n0:] = -kQ
+    S[n0:, :n0] = -kQ.T
+    S[n0:, n0:] = Qinv
+    return (d2n, np.concatenate([e, h.e]), S, dof + m, rows + new)

@@ -41,9 +41,10 @@ def to_world(pose: NDArray[np.float64], pts: NDArray[np.float64]) -> NDArray[np.
     """Robot-frame points (n, 2) to the world frame, robot at ``pose`` (x, y, theta)."""
     pts = np.asarray(pts, dtype=float).reshape(-1, 2)
     c, s = math.cos(pose[2]), math.sin(pose[2])
-    return np.column_stack(
-        [pose[0] + c * pts[:, 0] - s * pts[:, 1], pose[1] + s * pts[:, 0] + c * pts[:, 1]]
-    )
+    out = np.empty_like(pts)
+    out[:, 0] = pose[0] + c * pts[:, 0] - s * pts[:, 1]
+    out[:, 1] = pose[1] + s * pts[:, 0] + c * pts[:, 1]
+    return out
 
 
 def foot_point(pose: NDArray[np.float64], z: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -57,7 +58,14 @@ def measured_ends(f: Feature, pose: NDArray[np.float64]) -> NDArray[np.float64]:
     if f.endpoints is None:
         p = foot_point(pose, f.z)
         return np.array([p, p])
-    return to_world(pose, f.endpoints)
+    (x0, y0), (x1, y1) = f.endpoints  # to_world of two points, in scalars
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    return np.array(
+        [
+            [pose[0] + c * x0 - s * y0, pose[1] + s * x0 + c * y0],
+            [pose[0] + c * x1 - s * y1, pose[1] + s * x1 + c * y1],
+        ]
+    )
 
 
 def overlap(
@@ -67,8 +75,37 @@ def overlap(
     ``meas`` (world ends); negative: the gap between them. A map line without ends: 0."""
     if ends is None:
         return 0.0
-    a, b = np.sort(along(lm, ends)), np.sort(along(lm, meas))
-    return float(min(a[1], b[1]) - max(a[0], b[0]))
+    fr = _frame(lm)  # in scalars: called for every line pairing the association tries
+    a0, a1 = _along2(fr, ends)
+    b0, b1 = _along2(fr, meas)
+    return min(max(a0, a1), max(b0, b1)) - max(min(a0, a1), min(b0, b1))
+
+
+# Scalar forms of line_frame / along / on_line for the two ends of a segment (the per-keyframe
+# geometry updates call them thousands of times; numpy's per-call cost dominates there).
+_Frame = tuple[float, float, float, float]
+
+
+def _frame(lm: NDArray[np.float64]) -> _Frame:
+    """(foot x, foot y, direction x, direction y) of a world line (alpha, d)."""
+    a, d = float(lm[0]), float(lm[1])
+    c, s = math.cos(a), math.sin(a)
+    return d * c, d * s, -s, c
+
+
+def _along2(fr: _Frame, pts: NDArray[np.float64]) -> tuple[float, float]:
+    """:func:`along` of two points."""
+    fx, fy, ux, uy = fr
+    return (
+        (float(pts[0][0]) - fx) * ux + (float(pts[0][1]) - fy) * uy,
+        (float(pts[1][0]) - fx) * ux + (float(pts[1][1]) - fy) * uy,
+    )
+
+
+def _on_line2(fr: _Frame, s0: float, s1: float) -> NDArray[np.float64]:
+    """:func:`on_line` of two positions."""
+    fx, fy, ux, uy = fr
+    return np.array([[fx + s0 * ux, fy + s0 * uy], [fx + s1 * ux, fy + s1 * uy]])
 
 
 def union(
@@ -83,8 +120,9 @@ def union(
 
 
 def reproject(lm: NDArray[np.float64], ends: NDArray[np.float64]) -> NDArray[np.float64]:
-    """World ends moved onto the current line estimate (orthogonal projection)."""
-    return on_line(lm, along(lm, ends))
+    """World ends (2, 2) moved onto the current line estimate (orthogonal projection)."""
+    fr = _frame(lm)
+    return _on_line2(fr, *_along2(fr, ends))
 
 
 def update_line_ends(
@@ -101,26 +139,23 @@ def update_line_ends(
     a weak one, not at all toward an end that carries no information (field of view). A sonar
     plane (its foot point only) can only extend the segment. Returns the world ends (2, 2)."""
     meas = measured_ends(f, pose)
-    s = along(lm, meas)
+    fr = _frame(lm)
+    s = _along2(fr, meas)
     if f.endpoints is None:
         if ends is None:
-            return on_line(lm, s)
-        e = along(lm, ends)
-        return on_line(lm, np.array([min(e.min(), s.min()), max(e.max(), s.max())]))
+            return _on_line2(fr, *s)
+        e = _along2(fr, ends)
+        return _on_line2(fr, min(min(e), min(s)), max(max(e), max(s)))
     conds = [f.start, f.end]
-    order = np.argsort(s)
-    (s0, c0), (s1, c1) = (s[order[0]], conds[order[0]]), (s[order[1]], conds[order[1]])
+    i0, i1 = (0, 1) if s[0] <= s[1] else (1, 0)
+    (s0, c0), (s1, c1) = (s[i0], conds[i0]), (s[i1], conds[i1])
     if ends is None:
-        return on_line(lm, np.array([s0, s1]))
-    e0, e1 = np.sort(along(lm, ends))
-    return on_line(
-        lm,
-        np.array(
-            [
-                _move(e0, s0, c0, True, big_step, small_step),
-                _move(e1, s1, c1, False, big_step, small_step),
-            ]
-        ),
+        return _on_line2(fr, s0, s1)
+    e0, e1 = sorted(_along2(fr, ends))
+    return _on_line2(
+        fr,
+        _move(e0, s0, c0, True, big_step, small_step),
+        _move(e1, s1, c1, False, big_step, small_step),
     )
 
 

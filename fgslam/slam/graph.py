@@ -68,17 +68,17 @@ class GraphBackend(Backend):
     Noise policy (one for iSAM2 and batch, which share the graph): landmark factors and
     merge factors carry a robust noise model with kernel ``robust`` (models.m_estimator;
     "none": Gaussian); a merge is a robust tie of sigma ``merge_sigma`` (m, rad), never a
-    hard equality. After the last keyframe, :meth:`finish` calls ``update()`` until the
-    estimate moves less than ``converge_tol`` (or ``max_final_updates`` calls), so iSAM2's
-    final estimate is at the optimum. Relinearisation during the run: every
-    ``relinearize_skip`` updates, of the variables whose step exceeds
-    ``relinearize_threshold`` (GTSAM's 0.1: fast). That leaves variables with smaller steps at
-    old linearisation points, and with robust kernels their weights too (on Victoria Park's
-    first 300 steps: 12-18 cm from the batch optimum). So :meth:`finish` relinearises in full
-    once (a new ISAM2 over the same factors from the current estimate, threshold
-    ``final_threshold``, 0.01) and updates until no variable moves by ``converge_tol``
-    (experiments/README.md: 0.001 and 1e-5 cost 3 s more on 200 s of the corridor for
-    1.5 cm closer to batch on Victoria Park).
+    hard equality. Relinearisation during the run: every ``relinearize_skip`` updates, of the
+    variables whose step exceeds ``relinearize_threshold`` (GTSAM's 0.1: fast). That leaves
+    variables with smaller steps at old linearisation points, and with robust kernels their
+    weights too (on Victoria Park's first 300 steps: 12-18 cm from the batch optimum). So
+    after the last keyframe :meth:`finish` relinearises the whole graph at the current
+    estimate and takes Gauss-Newton steps (every factor linearised, one sparse solve) until
+    no variable moves by ``converge_tol`` (or ``max_final_updates`` steps), so iSAM2's final
+    estimate is at the optimum. (Until d4a6cdb: a new ISAM2 over the same factors, threshold
+    0.01, updated until converged; its first update alone, a full elimination inside iSAM2,
+    cost ~1 s of CPU on 200 s of the corridor against ~0.1 s per Gauss-Newton step, and it
+    stopped further from the optimum: experiments/README.md.)
 
     :meth:`means` is a cache: refreshed in full every ``refresh_every`` keyframes, and for the
     landmarks each keyframe touched; association uses it only to pick candidates (a loose
@@ -94,10 +94,9 @@ class GraphBackend(Backend):
         merge_sigma: float = 0.01,
         relinearize_threshold: float = 0.1,
         relinearize_skip: int = 10,
-        final_threshold: float = 0.01,
         refresh_every: int = 10,
         max_final_updates: int = 20,
-        converge_tol: float = 1e-4,
+        converge_tol: float = 0.01,
         loop_updates: int = 2,
     ) -> None:
         super().__init__()
@@ -110,7 +109,7 @@ class GraphBackend(Backend):
         self.converge_tol = converge_tol
         self.loop_updates = loop_updates
         self.final_updates = 0
-        self.final_threshold = final_threshold
+        self._final = False  # _est is the converged final estimate
         self.failed: str | None = None
         self._start_cov = np.eye(3)
         params = gtsam.ISAM2Params()
@@ -126,7 +125,7 @@ class GraphBackend(Backend):
         self._pose_pred = np.zeros(3)
         self._pre: Preintegrated | None = None
         self._est = gtsam.Values()
-        self._est_poses = np.zeros((0, 3))  # keyframe poses of _est
+        self._est_poses: NDArray[np.float64] | None = np.zeros((0, 3))  # of _est (None: to do)
         self._means: dict[int, NDArray[np.float64]] = {}
         self._touched: set[int] = set()
         self._loop_added = False
@@ -179,6 +178,14 @@ class GraphBackend(Backend):
     def keyframe_poses(self) -> NDArray[np.float64]:
         """(x, y, theta) of every keyframe before the current one, world: the cached estimate
         (refreshed every ``refresh_every`` keyframes), the filtered poses after it."""
+        if self._est_poses is None:  # read from _est when first needed after a refresh
+            poses = []
+            for k in range(len(self.times)):
+                if not self._est.exists(X(k)):
+                    break
+                p = self._est.atPose2(X(k))
+                poses.append((p.x(), p.y(), p.theta()))
+            self._est_poses = np.array(poses, dtype=float).reshape(-1, 3)
         cached = self._est_poses
         newer = [p for _, p, _ in self.trajectory[len(cached) :]]
         return np.vstack([cached, np.array(newer, dtype=float).reshape(-1, 3)])
@@ -225,13 +232,7 @@ class GraphBackend(Backend):
 
     def _refresh_means(self) -> None:
         self._means = {lid: self._mean(lid) for lid in self.kinds if self._est.exists(L(lid))}
-        poses = []
-        for k in range(len(self.times)):
-            if not self._est.exists(X(k)):
-                break
-            p = self._est.atPose2(X(k))
-            poses.append((p.x(), p.y(), p.theta()))
-        self._est_poses = np.array(poses, dtype=float).reshape(-1, 3)
+        self._est_poses = None  # keyframe_poses reads them from _est when asked
 
     def estimate(self, lids: list[int]) -> Estimate:
         """Means and world-frame joint covariance of [predicted pose, landmarks] (fresh: solved
@@ -336,9 +337,8 @@ class GraphBackend(Backend):
         dims = {X(k): 3 for k in range(len(self.times))}
         dims.update({L(lid): models.DIM[kind] for lid, kind in self.kinds.items()})
         try:
-            self._est, self.batch_iterations = levenberg_marquardt(
-                self.graph, self.isam.calculateEstimate(), dims
-            )
+            start = self._est if self._final else self.isam.calculateEstimate()
+            self._est, self.batch_iterations = levenberg_marquardt(self.graph, start, dims)
         except RuntimeError as exc:
             raise BackendError(f"batch optimisation failed: {_reason(exc)}") from None
         self.batch = True
@@ -362,31 +362,27 @@ class GraphBackend(Backend):
         return out
 
     def _converge(self) -> None:
-        """Relinearise the whole graph at the current estimate (one new ISAM2, threshold
-        ``final_threshold``, relinearising at every update), then ``update()`` until the
-        largest change of the estimate (tangent, per component) falls below
-        ``converge_tol``; ``final_updates`` counts the extra updates."""
+        """Gauss-Newton on the whole graph from the current estimate: relinearise every
+        factor, solve, step, until the largest step (tangent, per component) falls below
+        ``converge_tol`` (or ``max_final_updates`` steps), as iSAM2's own updates step (no
+        error evaluation: one costs half a step); a solve that fails or a step that is not
+        finite ends it, the estimate before it kept. ``final_updates`` counts the steps."""
         est = self.isam.calculateEstimate()
-        params = gtsam.ISAM2Params()
-        params.setRelinearizeThreshold(self.final_threshold)
-        params.relinearizeSkip = 1
-        fresh = gtsam.ISAM2(params)
-        try:
-            fresh.update(self.graph, est)
-        except RuntimeError:  # keep the incremental estimate
-            self._est = est
-            return
-        self.isam = fresh
-        prev = fresh.calculateEstimate()
-        self.final_updates = 1
+        self.final_updates = 0
         for _ in range(self.max_final_updates):
-            step = float(np.max(np.abs(est.localCoordinates(prev).vector()), initial=0.0))
+            try:
+                delta = self.graph.linearize(est).optimize()
+            except RuntimeError:  # an ill-conditioned graph: keep the estimate so far
+                break
+            step = float(np.max(np.abs(delta.vector()), initial=0.0))
+            if not math.isfinite(step):
+                break
+            est = est.retract(delta)
+            self.final_updates += 1
             if step < self.converge_tol:
                 break
-            fresh.update()
-            self.final_updates += 1
-            est, prev = prev, fresh.calculateEstimate()
-        self._est = prev
+        self._est = est
+        self._final = True
 
     def chi2_per_dof(self, values: gtsam.Values | None = None) -> float:
         """2 x graph error / (measurement dof - variable dof) of ``values`` (default: the

@@ -87,15 +87,17 @@ def _difference(kind: str, a: NDArray[np.float64], b: NDArray[np.float64]):
 
 
 def _differences(kind: str, a: NDArray[np.float64], M: NDArray[np.float64]) -> NDArray[np.float64]:
-    """:func:`_difference` of ``a`` against each row of ``M`` (no Jacobians), vectorised."""
-    E = a[None, :] - M
+    """:func:`_difference` of ``a`` (dim,) or of each row of ``a`` (q, dim) against each row
+    of ``M`` (no Jacobians), vectorised: (n, dim) or (q, n, dim)."""
+    a = np.asarray(a, dtype=float)
+    E = a[..., None, :] - M
     if kind == "line":
-        da = wrap_angles(E[:, 0])
+        da = wrap_angles(E[..., 0])
         f = flips(da)
-        E[:, 0] = np.where(f, wrap_angles(da - math.pi), da)
-        E[:, 1] = np.where(f, a[1] + M[:, 1], E[:, 1])
+        E[..., 0] = np.where(f, wrap_angles(da - math.pi), da)
+        E[..., 1] = np.where(f, a[..., None, 1] + M[:, 1], E[..., 1])
     elif kind == "corner":
-        E[:, 2] = wrap_angles(E[:, 2])
+        E[..., 2] = wrap_angles(E[..., 2])
     return E
 
 
@@ -128,25 +130,25 @@ class Lifecycle:
     ) -> list[Candidate]:
         """Confirmed (and unreliable) landmarks within ``max_range`` of the robot (lines:
         of their segment), from the means given."""
-        ids = [lid for lid, lm in self.landmarks.items() if lm.active and lid in means]
-        return [
-            Candidate(lid, self.landmarks[lid].kind, self.landmarks[lid].ends)
-            for lid in self._near(pose, ids, means)
-        ]
+        lms = [lm for lid, lm in self.landmarks.items() if lm.active and lid in means]
+        return [Candidate(lm.id, lm.kind, lm.ends) for lm in self._near(pose, lms, means)]
 
-    def _near(self, pose, ids: list[int], means) -> list[int]:
-        if not ids:
+    def _near(self, pose, lms: list[Landmark], means) -> list[Landmark]:
+        if not lms:
             return []
-        ends = np.empty((len(ids), 4))
-        for i, lid in enumerate(ids):
-            lm, m = self.landmarks[lid], means[lid]
-            if lm.kind == "line":
-                e = lm.ends if lm.ends is not None else np.vstack([geometry.line_frame(m)[0]] * 2)
-                ends[i] = e.reshape(4)
+        rows = []
+        for lm in lms:
+            m = means[lm.id]
+            if lm.kind != "line":
+                rows.append((m[0], m[1], m[0], m[1]))
+            elif lm.ends is not None:
+                rows.append((lm.ends[0, 0], lm.ends[0, 1], lm.ends[1, 0], lm.ends[1, 1]))
             else:
-                ends[i] = (m[0], m[1], m[0], m[1])
+                foot = geometry.line_frame(m)[0]
+                rows.append((foot[0], foot[1], foot[0], foot[1]))
+        ends = np.array(rows, dtype=float)
         d = geometry.segment_distance(np.asarray(pose[:2], dtype=float), ends)
-        return [lid for lid, di in zip(ids, d, strict=True) if di < self.p.max_range]
+        return [lm for lm, di in zip(lms, d, strict=True) if di < self.p.max_range]
 
     # ------------------------------------------------------------------ tentatives
 
@@ -255,28 +257,37 @@ class Lifecycle:
                 by_kind.setdefault(lm.kind, ([], []))[0].append(lid)
         for kind, (ids, _) in list(by_kind.items()):
             by_kind[kind] = (ids, np.array([means[i] for i in ids], dtype=float))
+        # the pre-gate of every queried landmark of a kind against all of its kind at once
+        near: dict[int, NDArray[np.intp]] = {}
+        queried = [a for a in lids if a in means and self.landmarks[a].active]
+        for kind, (_, M) in by_kind.items():
+            qs = [a for a in queried if self.landmarks[a].kind == kind]
+            if not qs:
+                continue
+            E = _differences(kind, np.array([means[a] for a in qs], dtype=float), M)
+            lim = np.where(models.ANGULAR[kind], p.duplicate_pregate_rad, p.duplicate_pregate_m)
+            for a, ok in zip(qs, np.all(np.abs(E) <= lim, axis=2), strict=True):
+                near[a] = np.flatnonzero(ok)
         out: list[tuple[int, int]] = []
         done: set[int] = set()
         for a in lids:
             la = self.landmarks[a]
             if a not in means or a in done or not la.active:
                 continue
-            ids, M = by_kind[la.kind]
-            E = _differences(la.kind, np.asarray(means[a], dtype=float), M)
-            lim = np.where(models.ANGULAR[la.kind], p.duplicate_pregate_rad, p.duplicate_pregate_m)
-            for j in np.flatnonzero(np.all(np.abs(E) <= lim, axis=1)):
+            ids, _ = by_kind[la.kind]
+            for j in near[a]:
                 b = ids[j]
                 lb = self.landmarks[b]
                 if b == a or b in done:
                     continue
+                pair = (min(a, b), max(a, b))
+                if self.k - self._tested.get(pair, -(10**9)) < p.duplicate_retest:
+                    continue  # failed recently: the joint covariance query is the costly part
                 if la.kind == "line":
                     if la.ends is None or lb.ends is None:
                         continue
                     if geometry.overlap(means[a], la.ends, lb.ends) < -p.max_gap:
                         continue
-                pair = (min(a, b), max(a, b))
-                if self.k - self._tested.get(pair, -(10**9)) < p.duplicate_retest:
-                    continue  # failed recently: the joint covariance query is the costly part
                 m, P = estimate([a, b])
                 e, Hb = _difference(la.kind, m[a], m[b])
                 n = len(e)

@@ -50,23 +50,33 @@ def residuals(
     """:func:`residual` without Jacobians for many landmarks at once: ``lms`` (n, dim) world
     parameters, one measurement ``z``; returns (n, len(z)). Vectorised for the association's
     pre-gate, which tries every nearby landmark against every feature of a scan."""
+    return residuals_grid(kind, pose, lms, np.asarray(z, dtype=float)[None, :])[0]
+
+
+def residuals_grid(
+    kind: str, pose: NDArray[np.float64], lms: NDArray[np.float64], Z: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """:func:`residuals` of several measurements ``Z`` (m, k) of one kind and length k against
+    every landmark: (m, n, k), element for element the same arithmetic."""
     x, y, th = (float(v) for v in pose)
     lms = np.asarray(lms, dtype=float).reshape(-1, DIM[kind])
+    Z = np.asarray(Z, dtype=float)
+    z0, z1 = Z[:, 0:1], Z[:, 1:2]
     if kind == "line":
         aw, dw = lms[:, 0], lms[:, 1]
-        e0 = np.remainder(aw - th - z[0] + math.pi, 2 * math.pi) - math.pi
+        e0 = np.remainder(aw - th - z0 + math.pi, 2 * math.pi) - math.pi
         flip = flips(e0)  # the (alpha + pi, -d) form of the prediction
         e0 = np.where(flip, np.remainder(e0 + 2 * math.pi, 2 * math.pi) - math.pi, e0)
         d = dw - x * np.cos(aw) - y * np.sin(aw)
-        return np.column_stack([e0, np.where(flip, -d, d) - z[1]])
+        return np.stack([e0, np.where(flip, -d, d) - z1], axis=-1)
     dx, dy = lms[:, 0] - x, lms[:, 1] - y
     cols = [
-        np.remainder(np.arctan2(dy, dx) - th - z[0] + math.pi, 2 * math.pi) - math.pi,
-        np.hypot(dx, dy) - z[1],
+        np.remainder(np.arctan2(dy, dx) - th - z0 + math.pi, 2 * math.pi) - math.pi,
+        np.hypot(dx, dy) - z1,
     ]
-    if len(z) == 3:  # a laser corner: its bisector
-        cols.append(np.remainder(lms[:, 2] - th - z[2] + math.pi, 2 * math.pi) - math.pi)
-    return np.column_stack(cols)
+    if Z.shape[1] == 3:  # a laser corner: its bisector
+        cols.append(np.remainder(lms[:, 2] - th - Z[:, 2:3] + math.pi, 2 * math.pi) - math.pi)
+    return np.stack(cols, axis=-1)
 
 
 def to_world(
