@@ -53,14 +53,14 @@ def test_consistent_when_the_errors_match_the_models():
     speed-of-sound errors, no mixed pixels, phantoms or misclassifications), every backend's
     pose NEES is near its 3 degrees of freedom; with the simulator's systematic errors the
     estimates are overconfident (reported in experiments/README.md)."""
+    import dataclasses
+
     from slam_scenes import ROOM
 
     from fgslam.config import load_config
     from fgslam.sim.sensors import SimParams
     from fgslam.sim.simulate import events, plan_run
     from fgslam.sim.world import parse_world
-
-    import dataclasses
 
     cfg = load_config()
     # nor the scan matches' model-error floor (errors of real surfaces the simulator has not)
