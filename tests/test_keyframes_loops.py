@@ -224,6 +224,11 @@ def test_a_closure_the_estimate_is_too_sure_against_waits_for_a_second():
     assert closer.stats["loop_doubt_inconsistent_with_the_estimate"] == 1
     e = c.pose - between_poses(old, here)
     assert math.hypot(e[0], e[1]) < 0.03
+    strict = LoopCloser(LoopParams(doubt=False), _mp())  # the rule before: thrown away
+    strict.add_keyframe(0, _scan(segs, old, rng), old)
+    strict.add_keyframe(1, _scan(segs, here, rng), here)
+    c = strict.verify(0, 1, np.array([old]), gtsam.Pose2(*believed), cov)
+    assert c.reason == "inconsistent with the estimate" and not c.accepted
 
 
 def test_an_uncertain_closure_enters_only_with_a_second_that_agrees():

@@ -62,8 +62,10 @@ class LoopParams:
     gate_p: float = 0.999
     see_through_margin: float = 0.3
     max_see_through: float = 0.05
-    grey_see_through: float = 0.10
-    doubt: bool = True  # False: weak, seeing-through and inconsistent closures are rejected
+    grey_see_through: float = 0.10  # more seen through: rejected; above max_...: in doubt
+    # False: weak, slightly seeing-through and inconsistent closures are rejected outright
+    # (the rule before; Intel 0.100 -> 0.051 m with it, experiments/README.md)
+    doubt: bool = True
     confident_xy: float = 0.3
     confident_theta: float = math.radians(3.0)
     confirm_window: int = 10
