@@ -230,13 +230,7 @@ def relations_nees(path: Path, relations: Path, pairs: int = 300, seed: int = 1)
     rng = np.random.default_rng(seed)
     nees: dict[str, list[float]] = {k: [] for k in variants}
     err = []
-    for t1, t2, x, y, th in dense.read_relations(relations):
-        if math.hypot(x, y) > 1.0:
-            continue
-        i, j = (int(np.argmin(np.abs(stamps - t))) for t in (t1, t2))
-        if abs(stamps[i] - t1) > 1e-3 or abs(stamps[j] - t2) > 1e-3:
-            continue
-        truth = np.array([x, y, th])
+    for i, j, truth in dense.relation_scan_pairs(dense.read_relations(relations), stamps, 1.0):
         ref = Reference.build(scan_points(ranges[i], bearings), floored, origins=(0.0, 0.0))
         q = scan_points(ranges[j], bearings)
         guess = truth + rng.normal(0.0, [0.05, 0.05, 0.03])

@@ -85,6 +85,29 @@ def read_relations(path: str | Path) -> NDArray[np.float64]:
     return data[:, [0, 1, 2, 3, 7]]
 
 
+def relation_scan_pairs(
+    relations: ArrayLike, stamps: ArrayLike, max_distance: float = math.inf, tol: float = 1e-3
+) -> list[tuple[int, int, NDArray[np.float64]]]:
+    """The relations (rows ``t1 t2 x y yaw``) whose two ends are scans: ``(i, j, pose)`` with
+    ``i``, ``j`` the indices of the scans stamped within ``tol`` s of t1 and t2 (``stamps``
+    ascending) and ``pose`` (x, y, yaw) of j in i's frame (m, rad); relations longer than
+    ``max_distance`` m are left out. File order kept."""
+    r = np.asarray(relations, dtype=float).reshape(-1, 5)
+    st = np.asarray(stamps, dtype=float)
+    if not len(st):
+        return []
+
+    def nearest(t: NDArray) -> NDArray:
+        k = np.clip(np.searchsorted(st, t), 1, max(len(st) - 1, 1))
+        k = np.where(np.abs(st[k - 1] - t) <= np.abs(st[np.minimum(k, len(st) - 1)] - t), k - 1, k)
+        return np.minimum(k, len(st) - 1)
+
+    i, j = nearest(r[:, 0]), nearest(r[:, 1])
+    keep = (np.abs(st[i] - r[:, 0]) <= tol) & (np.abs(st[j] - r[:, 1]) <= tol)
+    keep &= np.hypot(r[:, 2], r[:, 3]) <= max_distance
+    return [(int(i[n]), int(j[n]), r[n, 2:5].copy()) for n in np.nonzero(keep)[0]]
+
+
 def relations_error(
     relations: ArrayLike,
     t_traj: ArrayLike,

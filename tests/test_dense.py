@@ -159,3 +159,23 @@ def test_evaluate_with_the_logs_odometry_records(tmp_path, capsys):
     assert "translation 0.000 +- 0.000 m" in out
     assert main([*args, "--odometry-log", str(tmp_path / "est.tum")]) == 2
     assert "unknown log format" in capsys.readouterr().err
+
+
+def test_relation_scan_pairs_match_stamps_and_distance():
+    from fgslam.dense import relation_scan_pairs
+
+    stamps = np.array([0.0, 0.5, 1.0, 1.5, 2.0])
+    rel = np.array(
+        [
+            [0.0, 1.0, 0.3, 0.0, 0.1],  # both ends scans
+            [0.5004, 2.0, 0.2, 0.1, 0.0],  # within 1 ms
+            [0.7, 1.0, 0.1, 0.0, 0.0],  # t1 between scans
+            [1.0, 2.0, 3.0, 0.0, 0.0],  # too long
+            [1.5, 9.0, 0.1, 0.0, 0.0],  # beyond the last scan
+        ]
+    )
+    got = relation_scan_pairs(rel, stamps, max_distance=1.0)
+    assert [(i, j) for i, j, _ in got] == [(0, 2), (1, 4)]
+    np.testing.assert_allclose(got[0][2], [0.3, 0.0, 0.1])
+    assert len(relation_scan_pairs(rel, stamps)) == 3
+    assert relation_scan_pairs(rel, []) == []

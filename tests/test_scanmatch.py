@@ -335,7 +335,7 @@ def test_model_error_floor_on_real_relations():
     at most 1 m apart: the residual-based covariance alone is overconfident on real scans
     (median NEES far above 3 dof's 2.37); with the floor ``for_laser`` derives from the
     sensor (half a grid cell, one beam) it is consistent."""
-    from fgslam.dense import read_relations
+    from fgslam.dense import read_relations, relation_scan_pairs
     from fgslam.readers.carmen import flaser_scans
 
     scans = flaser_scans(MIT, 700)
@@ -347,13 +347,7 @@ def test_model_error_floor_on_real_relations():
     rel = read_relations(MIT.with_suffix(".relations"))
     rng = np.random.default_rng(2)
     nees: dict[str, list[float]] = {"bare": [], "floored": []}
-    for t1, t2, x, y, th in rel:
-        if math.hypot(x, y) > 1.0 or max(t1, t2) > stamps[-1]:
-            continue
-        i, j = np.searchsorted(stamps, [t1 - 1e-3, t2 - 1e-3])
-        if abs(stamps[i] - t1) > 1e-3 or abs(stamps[j] - t2) > 1e-3:
-            continue
-        truth = np.array([x, y, th])
+    for i, j, truth in relation_scan_pairs(rel, stamps, max_distance=1.0):
         ref = Reference.build(scan_points(ranges[i], bearings), floored, origins=(0.0, 0.0))
         q = scan_points(ranges[j], bearings)
         guess = truth + rng.normal(0.0, [0.05, 0.05, 0.03])
