@@ -401,3 +401,88 @@ def test_ros_bag_unset_header_stamps_and_a_jump(tmp_path, ros1):
     log = open_log(path2, tolerant=True)
     list(log)
     assert log.problems.notes["odometry"]["implausible"] >= 1
+
+
+def _stale_log(tmp_path, odom_lines: bool, frozen: range, n: int = 30):
+    """The room run as a raw log, scans 0.2 s apart, whose odometry repeats scan
+    ``frozen.start - 1``'s pose over the scans ``frozen`` and catches up after them (in the
+    ODOM lines and the FLASER odometry fields, or in the FLASER fields alone)."""
+    from readers_helpers import path
+
+    text = carmen_text(corrected=False, n=n, odo_error=(0.0, 0.0, 0.0), stamp=lambda k: 1 + 0.2 * k)
+    out, k_scan, k_odom, held = [], 0, 0, None
+    for ln in text.splitlines():
+        f = ln.split()
+        if f and f[0] == "ODOM":
+            if not odom_lines:
+                continue
+            if k_odom == frozen.start - 1:
+                held = f[1:4]
+            if k_odom in frozen:
+                f[1:4] = held
+            k_odom += 1
+        elif f and f[0] == "FLASER":
+            nb = int(f[1])
+            if k_scan == frozen.start - 1:
+                held = f[2 + nb + 3 : 2 + nb + 6]
+            if k_scan in frozen:
+                f[2 + nb : 2 + nb + 6] = held + held
+            k_scan += 1
+        out.append(" ".join(f))
+    return write(tmp_path, "\n".join(out) + "\n"), path(n)
+
+
+def _odometry_at_scans(log):
+    """The odometry pose (integrated from the delivered samples) at each delivered scan."""
+    from factors.odometry import integrate_poses
+
+    o = log.config.odometry
+    pose, poses = np.zeros(3), []
+    for e in log:
+        if isinstance(e, OdometryEvent):
+            lr, ll = e.ticks_right * o.metres_per_tick_right, e.ticks_left * o.metres_per_tick_left
+            pose = integrate_poses([lr], [ll], o.wheelbase, pose)[-1]
+        elif isinstance(e, LaserScan):
+            poses.append(pose.copy())
+    return np.array(poses)
+
+
+@pytest.mark.parametrize("odom_lines", [True, False])
+def test_stale_odometry_is_spread_over_its_span(tmp_path, odom_lines):
+    """Odometry that repeats its pose for 0.8 s while the robot drives and turns, then
+    catches up (MIT CSAIL's FLASER fields do): the held scans come out among the catch-up's
+    samples spread over the span, so the odometry at each scan of the span is near the
+    truth (the old reading: no motion, then the whole of it in one scan interval, 0.4 m and
+    9 deg off in the middle), the events stay in time order, and the span is counted."""
+    f, truth = _stale_log(tmp_path, odom_lines, range(10, 14))
+    (tmp_path / "clean").mkdir()
+    log = open_log(f, mode="raw")
+    ev = list(log)
+    assert [e.t for e in ev] == sorted(e.t for e in ev)
+    assert sum(isinstance(e, LaserScan) for e in ev) == len(truth)
+    notes = log.problems.notes["odometry"]
+    assert notes["stale_spans"] == 1 and notes["stale_seconds"] == pytest.approx(1.0)
+    odo = _odometry_at_scans(open_log(f, mode="raw"))
+    clean, _ = _stale_log(tmp_path / "clean", odom_lines, range(0))
+    ref = _odometry_at_scans(open_log(clean, mode="raw"))  # the same drive, never frozen
+    err = np.hypot(*(odo[:, :2] - ref[:, :2]).T)
+    assert err.max() < 0.05, err.round(3)
+    assert np.abs(odo[:, 2] - ref[:, 2]).max() < math.radians(1.0)
+    assert np.allclose(odo[14:], ref[14:], atol=1e-3)  # caught up: the same from then on
+    # not holding (stale = 0) is the old reading: far off in the span
+    old = _odometry_at_scans(open_log(f, mode="raw", limits=OdometryLimits(stale=0.0)))
+    assert np.hypot(*(old[:, :2] - ref[:, :2]).T).max() > 0.3
+
+
+def test_a_stop_longer_than_the_stale_bound_is_not_spread(tmp_path):
+    """Odometry that repeats for the last 4 s of the log (longer than OdometryLimits.stale)
+    is a stop (or a hole), not stale: the held scans come out as they were (no motion over
+    them), in order."""
+    f, truth = _stale_log(tmp_path, True, range(10, 30))
+    log = open_log(f, mode="raw")
+    ev = list(log)
+    assert [e.t for e in ev] == sorted(e.t for e in ev)
+    assert log.problems.notes["odometry"]["stale_spans"] == 0
+    assert OdometryLimits().stale < 4.0
+    odo = _odometry_at_scans(open_log(f, mode="raw"))
+    assert len(odo) == len(truth) and np.allclose(odo[10:], odo[9], atol=1e-4)
