@@ -343,8 +343,8 @@ def main() -> None:
     print("|---|---|---|---|---|---|---|---|---|")
     times = {}
     odometry = {  # the scan odometry's thresholds (KeyframeParams)
-        "min_score": KeyframeParams.min_score,
-        "min_overlap": KeyframeParams.min_overlap,
+        "min_score": KeyframeParams.match_min_score,
+        "min_overlap": KeyframeParams.match_min_overlap,
     }
     for name, limit, ref in (
         ("intel-corrected.log.gz", None, True),

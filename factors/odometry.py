@@ -453,13 +453,18 @@ def fuse_motions(a: Preintegrated, b: Preintegrated) -> Preintegrated:
     return relative_pose([d.x(), d.y(), d.theta()], C)
 
 
-def combine_motions(
+def link_motions(
     wheels: Preintegrated, scan: Preintegrated, gate: float
-) -> tuple[Preintegrated, bool]:
-    """The one relative motion a filter predicts with from wheel odometry and a scan match:
-    their fusion (:func:`fuse_motions`) when their squared Mahalanobis distance is within
-    ``gate``, else the scan match alone (wheels slip; a scan match already passed its own
-    checks). Returns the motion and whether the two agreed."""
+) -> tuple[Preintegrated | None, Preintegrated]:
+    """The measurements one keyframe link carries, given wheel odometry and a scan match
+    of the same motion: both when their squared Mahalanobis distance
+    (:func:`motion_mahalanobis`) is within ``gate``, else the scan match alone (``None`` for
+    the wheels). The scan match already passed its own checks (score, overlap, ambiguity);
+    wheels slip, and frozen wheels that catch up report no motion with no uncertainty. On
+    the real logs, of the links where the two disagreed at p = 0.999 the scan match was the
+    nearer to the reference poses in 3 of 3 (Intel) and 61 of 62 (Freiburg 079),
+    experiments/README.md. Every backend gets the same decision (the graph's two factors,
+    the EKF's fusion)."""
     if motion_mahalanobis(wheels, scan) <= gate:
-        return fuse_motions(wheels, scan), True
-    return scan, False
+        return wheels, scan
+    return None, scan

@@ -201,7 +201,9 @@ class ScanMatchConfig:
     - ``model_error_xy`` (m), ``model_error_theta_deg``: the model error every scan match's
       covariance gets on top of its residual-based part (surfaces the two scans sample at
       other places, clutter that is not a line); negative: derived from the laser (half a
-      grid cell, one beam; measured on the benchmark's relations, experiments/README.md).
+      grid cell, one beam; measured on the benchmark's relations, experiments/README.md);
+    - ``motion_gate_p``: with ``odometry`` both, a link whose wheel odometry and scan match
+      disagree at this chi-square level keeps the scan match alone (wheels slip and freeze).
     """
 
     odometry: str = "both"
@@ -214,6 +216,7 @@ class ScanMatchConfig:
     match_resolution: float = 0.0
     model_error_xy: float = -1.0
     model_error_theta_deg: float = -1.0
+    motion_gate_p: float = 0.999
 
 
 SCANMATCH_CHOICES = {
@@ -309,6 +312,7 @@ def keyframe_params(cfg: RobotConfig) -> Any:
         odometry=sm.odometry,
         distance=sm.keyframe_distance,
         angle=math.radians(sm.keyframe_angle_deg),
+        motion_gate_p=sm.motion_gate_p,
     )
 
 
@@ -512,6 +516,8 @@ def _check_consistency(cfg: RobotConfig, src: str) -> None:
             raise ConfigError(
                 f"{src}: key 'scanmatch.{key}': expected one of {', '.join(choices)}, got {value!r}"
             )
+    if not 0.0 < cfg.scanmatch.motion_gate_p < 1.0:
+        raise ConfigError(f"{src}: key 'scanmatch.motion_gate_p': expected a value in (0, 1)")
     if cfg.laser.delay_max < cfg.laser.delay_min:
         raise ConfigError(f"{src}: key 'laser.delay_max': expected >= laser.delay_min")
     for arr in cfg.sonar.arrays:

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from factors.odometry import (
-    combine_motions,
     fuse_motions,
+    link_motions,
     motion_mahalanobis,
     relative_pose,
 )
@@ -69,18 +69,24 @@ def test_fusion_equals_the_two_factor_graph():
         assert np.allclose(cov, f.covariance, rtol=0.02, atol=0.01 * np.abs(cov).max())
 
 
-def test_combine_takes_the_scan_when_they_disagree():
+def test_a_link_keeps_the_scan_alone_when_they_disagree():
+    """link_motions: wheels 30 sigma from the scan match (slipped, or frozen) leave the link
+    to the scan; within the gate both stay, and the EKF's fusion of them lies between."""
     C = np.diag([0.01, 0.01, 0.005]) ** 2
     wheels = relative_pose([0.5, 0.0, 0.0], C)
-    scan = relative_pose([0.8, 0.0, 0.3], C)  # 30 sigma apart: the wheels slipped
+    scan = relative_pose([0.8, 0.0, 0.3], C)
     assert motion_mahalanobis(wheels, scan) > 100
-    m, agreed = combine_motions(wheels, scan, 7.8)
-    assert not agreed and m is scan
+    w, s = link_motions(wheels, scan, 7.8)
+    assert w is None and s is scan
     near = relative_pose([0.505, 0.0, 0.002], C)
-    m, agreed = combine_motions(wheels, near, 7.8)
-    assert agreed
+    w, s = link_motions(wheels, near, 7.8)
+    assert w is wheels and s is near
+    m = fuse_motions(wheels, near)
     assert 0.5 < m.delta.x() < 0.505  # between the two, halfway for equal covariances
     assert np.allclose(m.covariance, C / 2, rtol=0.05)
+    # frozen wheels: no motion with (almost) no uncertainty against a turn the scans saw
+    frozen = relative_pose([0.0, 0.0, 0.0], np.eye(3) * 1e-12)
+    assert link_motions(frozen, scan, 16.27)[0] is None
 
 
 @pytest.mark.parametrize("j", [0, 1])

@@ -376,7 +376,9 @@ def test_scan_odometry_thresholds_keep_right_low_score_pairs():
     bearings = np.linspace(-math.pi / 2, math.pi / 2, n)
     strict = MatchParams.for_laser(0.01, math.pi / (n - 1), 30.0)
     loose = replace(
-        strict, min_score=KeyframeParams.min_score, min_overlap=KeyframeParams.min_overlap
+        strict,
+        min_score=KeyframeParams.match_min_score,
+        min_overlap=KeyframeParams.match_min_overlap,
     )
     pts = [scan_points(r, bearings, max_range=30.0) for r in ranges]
     ok = {"strict": 0, "loose": 0}

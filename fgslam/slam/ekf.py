@@ -19,7 +19,7 @@ from scipy.stats import chi2
 
 from factors.geometry import wrap_angle
 from factors.line import line_difference
-from factors.odometry import Preintegrated, combine_motions
+from factors.odometry import Preintegrated, fuse_motions
 from fgslam.frontend.features import Feature
 from fgslam.slam import models
 from fgslam.slam.backend import Backend, Estimate
@@ -52,16 +52,14 @@ class EkfBackend(Backend):
         self, t: float, pre: Preintegrated | None, scan: Preintegrated | None = None
     ) -> None:
         """Predict with the wheel odometry ``pre`` and/or the scan match ``scan``; with both,
-        their fusion (:func:`factors.odometry.combine_motions`: where they disagree beyond
-        the gate, the scan match, counted as ``motion_disagreements``)."""
+        their fusion (:func:`factors.odometry.fuse_motions`; the caller decides whether both
+        belong to the link, :func:`factors.odometry.link_motions`)."""
         if pre is None or scan is None:
             pre = pre or scan
             if pre is None:
                 raise ValueError("predict needs the wheel odometry, a scan match or both")
         else:
-            pre, agreed = combine_motions(pre, scan, self.gate[3])
-            if not agreed:
-                self.stats["motion_disagreements"] += 1
+            pre = fuse_motions(pre, scan)
         x, y, th = self.x[:3]
         dx, dy, dth = pre.delta.x(), pre.delta.y(), pre.delta.theta()
         c, s = math.cos(th), math.sin(th)

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.stats import chi2
 
 from factors.geometry import between_poses, compose_poses, transform_points
 from factors.odometry import Preintegrated, relative_pose
@@ -45,31 +46,42 @@ class KeyframeParams:
     scan a keyframe, so that a new place's features are seen again soon; ``local_map``: scans
     are matched against the last this many keyframes' scans (placed by the scan odometry);
     ``retry_window``: a rejected match is tried again with the search window this many times
-    larger (1: never); ``min_score``, ``min_overlap``: the consecutive matches' rejection
-    thresholds, below the matcher's (0.5 / 0.25, sized to tell places apart over a loop
+    larger (1: never); ``match_min_score``, ``match_min_overlap``: the consecutive matches'
+    rejection thresholds, below the matcher's (0.5 / 0.25, sized to tell places apart over a loop
     closure's window): within the small window around the wheels' guess a right match of
     scans 1 m apart in clutter often scores 0.2-0.5 (Intel: 11 % of the pairs rejected at
     0.5, each a wheels-only link up to 14 deg off; at 0.2 / 0.1, 3 %, with 23 instead of 18
     of 909 accepted pairs more than 10 cm or 2 deg from GMapping's poses: experiments/
-    README.md), and the ambiguity test still guards the corridors."""
+    README.md), and the ambiguity test still guards the corridors; ``motion_gate_p``: with
+    ``odometry`` "both", a link whose wheel odometry and scan match disagree at this
+    chi-square level (3 dof) keeps the scan match alone
+    (:func:`factors.odometry.link_motions`)."""
 
     policy: str = "motion"
     odometry: str = "both"
     distance: float = 0.5
     angle: float = math.radians(20.0)
-    min_overlap: float = 0.35
+    min_overlap: float = 0.1  # 0.35 until 2026-12-02, shadowed by the field below (a bug)
     min_tracked: int = 2
     min_features: int = 3
     local_map: int = 1
     retry_window: float = 1.0  # 2.5 recovered matches but took Intel from 0.23 to 1.0 m
-    min_score: float = 0.2
-    min_overlap: float = 0.1
+    match_min_score: float = 0.2
+    match_min_overlap: float = 0.1
+    motion_gate_p: float = 0.999
 
     def __post_init__(self) -> None:
         if self.policy not in POLICIES:
             raise ValueError(f"unknown keyframe policy {self.policy!r}; expected one of {POLICIES}")
         if self.odometry not in ODOMETRY:
             raise ValueError(f"unknown odometry {self.odometry!r}; expected one of {ODOMETRY}")
+        if not 0.0 < self.motion_gate_p < 1.0:
+            raise ValueError(f"motion_gate_p must lie in (0, 1), got {self.motion_gate_p!r}")
+
+    @property
+    def motion_gate(self) -> float:
+        """The squared Mahalanobis bound of :attr:`motion_gate_p` (3 dof)."""
+        return float(chi2.ppf(self.motion_gate_p, 3))
 
     @property
     def matching(self) -> bool:
@@ -130,7 +142,7 @@ class ScanOdometry:
         # ambiguous matches are rejected here too: kept with their covariance (the wheels to
         # fill in) they took Intel from 0.23 to 1.8 m (experiments/README.md)
         self.mp = dataclasses.replace(
-            match_params, min_score=params.min_score, min_overlap=params.min_overlap
+            match_params, min_score=params.match_min_score, min_overlap=params.match_min_overlap
         )
         self.origin = origin
         self.sigma_time = sigma_time

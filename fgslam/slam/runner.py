@@ -28,7 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from factors.geometry import compose_poses
-from factors.odometry import integrate_poses, preintegrate
+from factors.odometry import integrate_poses, link_motions, preintegrate
 from fgslam.config import RobotConfig, match_params
 from fgslam.config import keyframe_params as config_keyframe_params
 from fgslam.config import loop_params as config_loop_params
@@ -329,6 +329,10 @@ class SlamPipeline:
         wheels = pre
         if scan is not None and self.keyframe_params.odometry == "scan":
             wheels = None  # the scan match alone (wheels only where it was rejected)
+        elif scan is not None and not first:
+            wheels, scan = link_motions(pre, scan, self.keyframe_params.motion_gate)
+            if wheels is None:
+                self.stats["keyframes_wheels_disagree"] += 1
         for sess in self.sessions.values():
             sess.feed(sf, wheels, self._odo_pose if first else None, scan, speed)
         self.stats.update({f"frontend_{k}": v for k, v in sf.stats.items()})
