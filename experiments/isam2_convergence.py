@@ -20,7 +20,7 @@ import numpy as np
 
 from fgslam.readers.victoria import read_victoria
 from fgslam.slam import pointslam
-from fgslam.slam.graph import GraphBackend, X
+from fgslam.slam.graph import BatchSmoother, GraphBackend, X
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "victoria_park.txt"
 
@@ -75,9 +75,9 @@ def main() -> None:
         c_conv = be.chi2_per_dof()
         conv = positions(be._est, n)
         run = positions(holder["as_run"], n)
-        be.run_batch()
-        b = positions(be._est, n)
-        c_b = be.chi2_per_dof()
+        batch = BatchSmoother(be)
+        b = positions(batch.values, n)
+        c_b = batch.chi2_per_dof()
         d_run = np.hypot(*(run - b).T).max()
         d_conv = np.hypot(*(conv - b).T).max()
         print(

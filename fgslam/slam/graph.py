@@ -1,5 +1,7 @@
-"""Factor-graph backends: iSAM2 (one incremental update per keyframe) and batch
-Levenberg-Marquardt smoothing of the whole graph (offline).
+"""Factor-graph backends: :class:`GraphBackend`, iSAM2 with one incremental update per
+keyframe (it builds the graph and makes the association decisions), and
+:class:`BatchSmoother`, Levenberg-Marquardt over the whole graph it built (offline
+smoothing); :class:`GraphSolution` reads either final estimate (trajectory, covariances).
 
 Variables: robot poses X(k) (``Pose2``), landmarks L(id): lines ``Vector2`` (alpha, d),
 corners ``Pose2``, points ``Point2``. Factors: a prior on the first pose, preintegrated
@@ -62,8 +64,8 @@ def _line_equality(k1: int, k2: int, noise: gtsam.noiseModel.Base) -> gtsam.Cust
 
 
 class GraphBackend(Backend):
-    """iSAM2 online, one update per keyframe; after :meth:`run_batch` the results are the
-    Levenberg-Marquardt solution of the whole graph (initialised from the incremental one).
+    """iSAM2 online, one update per keyframe; :class:`BatchSmoother` solves the graph it
+    built by Levenberg-Marquardt (offline), from its final estimate.
 
     Noise policy (one for iSAM2 and batch, which share the graph): landmark factors and
     merge factors carry a robust noise model with kernel ``robust`` (models.m_estimator;
@@ -100,7 +102,7 @@ class GraphBackend(Backend):
         loop_updates: int = 2,
     ) -> None:
         super().__init__()
-        self.batch = False
+        self.solution: GraphSolution | None = None  # after finish()
         self.covariances = covariances
         self.robust = robust
         self.merge_sigma = merge_sigma
@@ -130,8 +132,6 @@ class GraphBackend(Backend):
         self._touched: set[int] = set()
         self._loop_added = False
         self._prev = gtsam.Pose2()
-        self.batch_seconds = 0.0
-        self.batch_iterations = 0
 
     # ------------------------------------------------------------------ keyframes
 
@@ -330,36 +330,21 @@ class GraphBackend(Backend):
 
     # ------------------------------------------------------------------ results
 
-    def run_batch(self) -> None:
-        """Solve the whole graph by Levenberg-Marquardt from the incremental estimate; from
-        then on, results (trajectory, means, covariances) are the batch solution."""
-        t0 = time.perf_counter()
-        dims = {X(k): 3 for k in range(len(self.times))}
-        dims.update({L(lid): models.DIM[kind] for lid, kind in self.kinds.items()})
-        try:
-            start = self._est if self._final else self.isam.calculateEstimate()
-            self._est, self.batch_iterations = levenberg_marquardt(self.graph, start, dims)
-        except RuntimeError as exc:
-            raise BackendError(f"batch optimisation failed: {_reason(exc)}") from None
-        self.batch = True
-        self.name = "batch"
-        self._marg = None
-        self._refresh_means()
-        self.batch_seconds = time.perf_counter() - t0
-
     def finish(self) -> list[tuple[float, NDArray[np.float64], NDArray[np.float64] | None]]:
+        """Converge (:meth:`_converge`) and return the trajectory ``(t, pose, cov)`` of the
+        final estimate (:attr:`solution`)."""
         if self.k < 0:
             return []
-        if not self.batch:
-            self._converge()
-            self._marg = None
-            self._refresh_means()
-        covs = self._pose_covariances()
-        out = []
-        for k, t in enumerate(self.times):
-            p = self._est.atPose2(X(k))
-            out.append((t, np.array([p.x(), p.y(), p.theta()]), covs[k] if covs else None))
-        return out
+        self._converge()
+        self._refresh_means()
+        self.solution = GraphSolution(
+            self.graph, self._est, self.times, self.kinds, self.covariances
+        )
+        return self.solution.trajectory()
+
+    def final_estimate(self) -> gtsam.Values:
+        """The converged estimate after :meth:`finish`, else iSAM2's current one."""
+        return self._est if self._final else self.isam.calculateEstimate()
 
     def _converge(self) -> None:
         """Gauss-Newton on the whole graph from the current estimate: relinearise every
@@ -385,19 +370,58 @@ class GraphBackend(Backend):
         self._final = True
 
     def chi2_per_dof(self, values: gtsam.Values | None = None) -> float:
-        """2 x graph error / (measurement dof - variable dof) of ``values`` (default: the
-        current final estimate); ~1 at the optimum of a consistent graph."""
+        """:func:`chi2_per_dof` of ``values`` (default: the current final estimate)."""
         values = self._est if values is None else values
-        m = sum(self.graph.at(i).dim() for i in range(self.graph.size()))
-        n = 3 * len(self.times) + sum(models.DIM[k] for k in self.kinds.values())
-        return 2.0 * self.graph.error(values) / max(m - n, 1)
+        return chi2_per_dof(self.graph, values, len(self.times), self.kinds)
+
+    def landmark_covariances(self) -> dict[int, NDArray[np.float64]]:
+        """World-frame marginal covariances of the landmarks at the final estimate (after
+        :meth:`finish`; before it, none)."""
+        return self.solution.landmark_covariances() if self.solution is not None else {}
+
+
+class GraphSolution:
+    """A whole-graph estimate and what is read from it (iSAM2's converged one or the batch
+    solution): the trajectory with world-frame pose covariances and the landmarks'
+    covariances, from one factorisation of the whole graph (far cheaper than asking iSAM2 for
+    thousands of marginals one at a time); ``covariances`` False: none computed."""
+
+    def __init__(
+        self,
+        graph: gtsam.NonlinearFactorGraph,
+        values: gtsam.Values,
+        times: list[float],
+        kinds: dict[int, str],
+        covariances: bool = True,
+    ) -> None:
+        self.graph, self.values, self.times, self.kinds = graph, values, list(times), kinds
+        self.covariances = covariances
+        self._marg: gtsam.Marginals | None = None
 
     def _marginals(self) -> gtsam.Marginals:
-        """Marginals of the final estimate: one factorisation of the whole graph, far cheaper
-        than asking iSAM2 for thousands of marginals one at a time."""
-        if getattr(self, "_marg", None) is None:
-            self._marg = gtsam.Marginals(self.graph, self._est)
+        if self._marg is None:
+            self._marg = gtsam.Marginals(self.graph, self.values)
         return self._marg
+
+    def trajectory(self) -> list[tuple[float, NDArray[np.float64], NDArray[np.float64] | None]]:
+        covs = self._pose_covariances()
+        out = []
+        for k, t in enumerate(self.times):
+            p = self.values.atPose2(X(k))
+            out.append((t, np.array([p.x(), p.y(), p.theta()]), covs[k] if covs else None))
+        return out
+
+    def means(self) -> dict[int, NDArray[np.float64]]:
+        out = {}
+        for lid, kind in self.kinds.items():
+            if not self.values.exists(L(lid)):
+                continue
+            if kind == "corner":
+                p = self.values.atPose2(L(lid))
+                out[lid] = np.array([p.x(), p.y(), p.theta()])
+            else:
+                out[lid] = np.array(self.values.atVector(L(lid)))
+        return out
 
     def _pose_covariances(self) -> list[NDArray[np.float64]] | None:
         if not self.covariances:
@@ -409,7 +433,7 @@ class GraphBackend(Backend):
         out = []
         for k in range(len(self.times)):
             C = m.marginalCovariance(X(k))
-            R = _rot_block(self._est.atPose2(X(k)).theta())
+            R = _rot_block(self.values.atPose2(X(k)).theta())
             out.append(R @ C @ R.T)
         return out
 
@@ -420,18 +444,68 @@ class GraphBackend(Backend):
             return {}
         out = {}
         for lid, kind in self.kinds.items():
-            if not self._est.exists(L(lid)):
+            if not self.values.exists(L(lid)):
                 continue
-            C = (
-                m.marginalCovariance(L(lid))
-                if m is not None
-                else self.isam.marginalCovariance(L(lid))
-            )
+            C = m.marginalCovariance(L(lid))
             if kind == "corner":
-                R = _rot_block(self._est.atPose2(L(lid)).theta())
+                R = _rot_block(self.values.atPose2(L(lid)).theta())
                 C = R @ C @ R.T
             out[lid] = C
         return out
+
+
+class BatchSmoother:
+    """Offline smoothing: Levenberg-Marquardt over the whole graph that an iSAM2 run
+    (:class:`GraphBackend`) built, from iSAM2's final estimate: the same factors, noise and
+    robust policy, the association decisions iSAM2's estimate made. Results as a backend
+    gives them (:meth:`finish`, :meth:`means`, :meth:`landmark_covariances`); raises
+    :class:`BackendError` when the solve fails."""
+
+    name = "batch"
+
+    def __init__(self, source: GraphBackend) -> None:
+        t0 = time.perf_counter()
+        dims = {X(k): 3 for k in range(len(source.times))}
+        dims.update({L(lid): models.DIM[kind] for lid, kind in source.kinds.items()})
+        try:
+            values, self.iterations = levenberg_marquardt(
+                source.graph, source.final_estimate(), dims
+            )
+        except RuntimeError as exc:
+            raise BackendError(f"batch optimisation failed: {_reason(exc)}") from None
+        self.source = source
+        self.stats = getattr(source, "stats", {})
+        self.solution = GraphSolution(
+            source.graph, values, source.times, source.kinds, source.covariances
+        )
+        self.seconds = time.perf_counter() - t0
+
+    @property
+    def values(self) -> gtsam.Values:
+        return self.solution.values
+
+    def finish(self) -> list[tuple[float, NDArray[np.float64], NDArray[np.float64] | None]]:
+        return self.solution.trajectory()
+
+    def means(self) -> dict[int, NDArray[np.float64]]:
+        return self.solution.means()
+
+    def landmark_covariances(self) -> dict[int, NDArray[np.float64]]:
+        return self.solution.landmark_covariances()
+
+    def chi2_per_dof(self) -> float:
+        sol = self.solution
+        return chi2_per_dof(sol.graph, sol.values, len(sol.times), sol.kinds)
+
+
+def chi2_per_dof(
+    graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, poses: int, kinds: dict[int, str]
+) -> float:
+    """2 x graph error / (measurement dof - variable dof) of ``values`` (``poses`` poses and
+    the landmarks of ``kinds``); ~1 at the optimum of a consistent graph."""
+    m = sum(graph.at(i).dim() for i in range(graph.size()))
+    n = 3 * poses + sum(models.DIM[k] for k in kinds.values())
+    return 2.0 * graph.error(values) / max(m - n, 1)
 
 
 def levenberg_marquardt(

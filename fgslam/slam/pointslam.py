@@ -34,7 +34,7 @@ from fgslam.frontend.features import Feature
 from fgslam.readers.victoria import VictoriaPark, to_bearing_range
 from fgslam.slam.backend import Backend
 from fgslam.slam.ekf import EkfBackend
-from fgslam.slam.graph import GraphBackend
+from fgslam.slam.graph import BatchSmoother, GraphBackend
 from fgslam.slam.mapping import MapParams
 from fgslam.slam.point_calibration import Scales, scaled_covariance, self_calibrate
 from fgslam.slam.step import SlamStep
@@ -159,13 +159,13 @@ def run_points(
 
     assigned = [(g, final(o)) for g, o in assigned]
     where_of = [(i, q, final(o)) for i, q, o in where_of]
+    results: Backend | BatchSmoother = be
     if backend == "batch":
-        be.run_batch()  # type: ignore[attr-defined]
-    traj = be.finish()
+        results = BatchSmoother(be)  # type: ignore[arg-type]
+        stats["batch_seconds"] = round(results.seconds, 3)
+    traj = results.finish()
     wall = time.perf_counter() - t_start
-    means = be.means()
-    if backend == "batch":
-        stats["batch_seconds"] = round(be.batch_seconds, 3)  # type: ignore[attr-defined]
+    means = results.means()
     return PointSlamResult(
         backend=backend,
         association=association,

@@ -40,7 +40,7 @@ from fgslam.slam import models
 from fgslam.slam.association import METHODS
 from fgslam.slam.backend import Backend
 from fgslam.slam.ekf import EkfBackend
-from fgslam.slam.graph import BackendError, GraphBackend
+from fgslam.slam.graph import BackendError, BatchSmoother, GraphBackend
 from fgslam.slam.keyframes import KeyframeParams, ScanOdometry
 from fgslam.slam.lifecycle import Landmark, Lifecycle
 from fgslam.slam.loops import LoopCloser, LoopParams
@@ -442,9 +442,8 @@ class SlamPipeline:
             if key not in self.sessions or name not in self.backends:
                 continue
             sess = self.sessions[key]
-            if name == "batch":
-                sess.be.run_batch()
-            results[name] = _result(sess, name, **common)
+            be = BatchSmoother(sess.be) if name == "batch" else sess.be
+            results[name] = _result(sess, name, be, **common)
         samples = np.array(self._all_samples, dtype=float).reshape(-1, 3)
         for r in results.values():
             r.stats["frontend_seconds"] = round(self._fe_wall, 3)
@@ -490,6 +489,7 @@ def run_backends(
 def _result(
     sess,
     name,
+    be=None,
     *,
     kf_odo,
     truth_t,
@@ -505,14 +505,15 @@ def _result(
     """Finish one session's backend and package its result; ``shared`` (s) is the reading
     and front-end time that every backend of the pass is charged with. Not ``final``: the
     estimate so far, finishing nothing (the trajectory as estimated at each keyframe, no
-    landmark covariances)."""
+    landmark covariances). ``be``: what gives the results (default the session's backend;
+    a :class:`~fgslam.slam.graph.BatchSmoother` of it for "batch")."""
+    be = sess.be if be is None else be
     t0 = time.perf_counter()
-    traj = sess.be.finish() if final else list(sess.be.trajectory)
+    traj = be.finish() if final else list(sess.be.trajectory)
     means = {
-        lid: models.normalize(sess.mapper.landmarks[lid].kind, m)
-        for lid, m in sess.be.means().items()
+        lid: models.normalize(sess.mapper.landmarks[lid].kind, m) for lid, m in be.means().items()
     }
-    covs = sess.be.landmark_covariances() if final else {}
+    covs = be.landmark_covariances() if final else {}
     finish = time.perf_counter() - t0
     st = Counter(stats)
     st.update(sess.stats)
@@ -521,10 +522,8 @@ def _result(
         st.update(sess.loops.stats)
     if sess.failed is not None:  # after the updates: Counter cannot add a dict
         st["partial"] = dict(sess.failed)
-    if name == "batch":
-        sess_wall = sess.wall + getattr(sess.be, "batch_seconds", 0.0)
-    else:
-        sess_wall = sess.wall
+    batch_seconds = be.seconds if isinstance(be, BatchSmoother) else 0.0
+    sess_wall = sess.wall + batch_seconds
     times = np.array([p[0] for p in traj])
     poses = np.array([p[1] for p in traj]).reshape(-1, 3)
     scan_t, scan_p = _scan_poses(times, poses, between)
@@ -548,7 +547,7 @@ def _result(
         wall_time=shared + sess_wall + finish,
         log_duration=(last_t - first_t) if first_t is not None else 0.0,
         stats=st,
-        batch_seconds=getattr(sess.be, "batch_seconds", 0.0) if name == "batch" else 0.0,
+        batch_seconds=batch_seconds,
         landmark_counts=list(sess.landmark_counts),
     )
 
