@@ -175,7 +175,7 @@ def test_duplicate_pregate_differences_of_many_landmarks_at_once(kind):
     """The duplicate pre-gate's differences of several landmarks at once equal, bit for bit,
     those of each alone, and the scalar difference (either line parametrisation) to
     rounding."""
-    from fgslam.slam.lifecycle import _difference, _differences
+    _difference, _differences = models.difference, models.differences
 
     rng = np.random.default_rng(11)
     dim = models.DIM[kind]

@@ -4,7 +4,7 @@ and point (x, y) landmarks in one state vector (world frame, m, rad).
 Prediction composes the preintegrated odometry of eq 4 (its covariance in the previous
 keyframe's axes); updates use the shared measurement models of ``factors``; new landmarks are
 appended with their cross-covariances; merged landmarks (any kind) are tied by a perfect
-pseudo-measurement (the one line-flip rule, ``factors.line.line_difference``) and the dropped
+pseudo-measurement (:func:`fgslam.slam.models.difference`: the one line-flip rule) and the dropped
 one is marginalised out of the state.
 """
 
@@ -18,7 +18,6 @@ from numpy.typing import NDArray
 from scipy.stats import chi2
 
 from factors.geometry import wrap_angle
-from factors.line import line_difference
 from factors.odometry import Preintegrated, fuse_motions
 from fgslam.frontend.features import Feature
 from fgslam.slam import models
@@ -125,10 +124,9 @@ class EkfBackend(Backend):
         self.P = 0.5 * (self.P + self.P.T)
         self.x[2] = wrap_angle(self.x[2])
         for o, kind in self.index.values():
-            if kind == "line":
-                self.x[o] = wrap_angle(self.x[o])
-            elif kind == "corner":
-                self.x[o + 2] = wrap_angle(self.x[o + 2])
+            for i, angle in enumerate(models.ANGULAR[kind]):
+                if angle:
+                    self.x[o + i] = wrap_angle(self.x[o + i])
         return True
 
     def observe(self, lid: int, f: Feature) -> None:
@@ -162,12 +160,7 @@ class EkfBackend(Backend):
         od, _ = self.index[drop]
         n = models.DIM[kind]
         a, b = self.x[ok : ok + n], self.x[od : od + n]
-        if kind == "line":
-            e, Hb = line_difference(a, b)
-        else:
-            e, Hb = a - b, -np.eye(n)
-            if kind == "corner":
-                e[2] = wrap_angle(e[2])
+        e, Hb = models.difference(kind, a, b)
         H = np.zeros((n, self.x.size))
         H[:, ok : ok + n] = np.eye(n)
         H[:, od : od + n] = Hb

@@ -25,7 +25,6 @@ import gtsam
 import numpy as np
 from numpy.typing import NDArray
 
-from factors.line import line_difference
 from factors.odometry import Preintegrated, fuse_motions
 from fgslam.errors import UserError
 from fgslam.frontend.features import Feature
@@ -48,19 +47,6 @@ class BackendError(UserError):
 def _rot_block(th: float) -> NDArray[np.float64]:
     c, s = math.cos(th), math.sin(th)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def _line_equality(k1: int, k2: int, noise: gtsam.noiseModel.Base) -> gtsam.CustomFactor:
-    """Two line variables describe the same line (either parametrisation, by the one rule
-    :func:`factors.line.line_difference`)."""
-
-    def error(this, values, H):
-        e, Hb = line_difference(values.atVector(k1), values.atVector(k2))
-        if H is not None:
-            H[0], H[1] = np.eye(2), Hb
-        return e
-
-    return gtsam.CustomFactor(noise, [k1, k2], error)
 
 
 class GraphBackend(Backend):
@@ -219,13 +205,8 @@ class GraphBackend(Backend):
 
     def _mean(self, lid: int, fresh: bool = False) -> NDArray[np.float64]:
         """A landmark's mean: from the cached estimate, or (``fresh``) solved for now."""
-        key, kind = L(lid), self.kinds[lid]
-        if kind == "corner":
-            p = self.isam.calculateEstimatePose2(key) if fresh else self._est.atPose2(key)
-            return np.array([p.x(), p.y(), p.theta()])
-        return np.array(
-            self.isam.calculateEstimateVector(key) if fresh else self._est.atVector(key)
-        )
+        kind = models.KINDS[self.kinds[lid]]
+        return kind.read_isam(self.isam, L(lid)) if fresh else kind.read(self._est, L(lid))
 
     def means(self) -> dict[int, NDArray[np.float64]]:
         return self._means
@@ -248,8 +229,7 @@ class GraphBackend(Backend):
         prev = self._prev
         blocks = [_rot_block(prev.theta())]
         for lid in lids:
-            n = models.DIM[self.kinds[lid]]
-            blocks.append(_rot_block(means[lid][2]) if self.kinds[lid] == "corner" else np.eye(n))
+            blocks.append(models.KINDS[self.kinds[lid]].tangent_to_world(means[lid]))
         T = _blockdiag(blocks)
         P = T @ J @ T.T
         # propagate the pose through the new keyframe's odometry (as the EKF predicts)
@@ -279,15 +259,9 @@ class GraphBackend(Backend):
 
     def merge(self, keep: int, drop: int) -> None:
         """A robust tie (sigma ``merge_sigma``) between two variables of one landmark."""
-        kind = self.kinds[keep]
-        n = models.DIM[kind]
-        noise = models.noise_model(np.eye(n) * self.merge_sigma**2, self.robust)
-        if kind == "line":
-            self.new_graph.add(_line_equality(L(keep), L(drop), noise))
-        elif kind == "corner":
-            self.new_graph.add(gtsam.BetweenFactorPose2(L(keep), L(drop), gtsam.Pose2(), noise))
-        else:
-            self.new_graph.add(gtsam.BetweenFactorPoint2(L(keep), L(drop), np.zeros(2), noise))
+        kind = models.KINDS[self.kinds[keep]]
+        noise = models.noise_model(np.eye(kind.dim) * self.merge_sigma**2, self.robust)
+        self.new_graph.add(kind.equality(L(keep), L(drop), noise))
 
     def commit(self) -> None:
         try:
@@ -412,16 +386,11 @@ class GraphSolution:
         return out
 
     def means(self) -> dict[int, NDArray[np.float64]]:
-        out = {}
-        for lid, kind in self.kinds.items():
-            if not self.values.exists(L(lid)):
-                continue
-            if kind == "corner":
-                p = self.values.atPose2(L(lid))
-                out[lid] = np.array([p.x(), p.y(), p.theta()])
-            else:
-                out[lid] = np.array(self.values.atVector(L(lid)))
-        return out
+        return {
+            lid: models.KINDS[kind].read(self.values, L(lid))
+            for lid, kind in self.kinds.items()
+            if self.values.exists(L(lid))
+        }
 
     def _pose_covariances(self) -> list[NDArray[np.float64]] | None:
         if not self.covariances:
@@ -446,11 +415,8 @@ class GraphSolution:
         for lid, kind in self.kinds.items():
             if not self.values.exists(L(lid)):
                 continue
-            C = m.marginalCovariance(L(lid))
-            if kind == "corner":
-                R = _rot_block(self.values.atPose2(L(lid)).theta())
-                C = R @ C @ R.T
-            out[lid] = C
+            R = models.KINDS[kind].tangent_to_world(models.KINDS[kind].read(self.values, L(lid)))
+            out[lid] = R @ m.marginalCovariance(L(lid)) @ R.T
         return out
 
 

@@ -29,8 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from factors.geometry import wrap_angle, wrap_angles
-from factors.line import flips, line_difference
+from factors.geometry import wrap_angle
 from fgslam.frontend.features import Feature
 from fgslam.slam import geometry, models
 from fgslam.slam.association import Candidate, chi2_gate
@@ -74,31 +73,6 @@ class Landmark:
         if self.ends is None or self.line is None:
             return None
         return np.sort(geometry.along(models.normalize("line", self.line), self.ends))
-
-
-def _difference(kind: str, a: NDArray[np.float64], b: NDArray[np.float64]):
-    """a - b for two world landmarks of one kind, and its Jacobian w.r.t. b."""
-    if kind == "line":
-        return line_difference(a, b)
-    e = np.asarray(a, dtype=float) - np.asarray(b, dtype=float)
-    if kind == "corner":
-        e[2] = wrap_angle(e[2])
-    return e, -np.eye(len(e))
-
-
-def _differences(kind: str, a: NDArray[np.float64], M: NDArray[np.float64]) -> NDArray[np.float64]:
-    """:func:`_difference` of ``a`` (dim,) or of each row of ``a`` (q, dim) against each row
-    of ``M`` (no Jacobians), vectorised: (n, dim) or (q, n, dim)."""
-    a = np.asarray(a, dtype=float)
-    E = a[..., None, :] - M
-    if kind == "line":
-        da = wrap_angles(E[..., 0])
-        f = flips(da)
-        E[..., 0] = np.where(f, wrap_angles(da - math.pi), da)
-        E[..., 1] = np.where(f, a[..., None, 1] + M[:, 1], E[..., 1])
-    elif kind == "corner":
-        E[..., 2] = wrap_angles(E[..., 2])
-    return E
 
 
 class Lifecycle:
@@ -169,7 +143,7 @@ class Lifecycle:
         for lid, lm in self.landmarks.items():
             if lm.status != TENTATIVE or lm.kind != f.kind or lm.last_keyframe == k:
                 continue
-            e, Hb = _difference(f.kind, lm_w, lm.mean)
+            e, Hb = models.difference(f.kind, lm_w, lm.mean)
             S = Hb @ lm.cov @ Hb.T + C
             try:
                 d2 = float(e @ np.linalg.solve(S, e))
@@ -186,7 +160,7 @@ class Lifecycle:
         else:
             lid, lm = best, self.landmarks[best]
             # fuse as a measurement of the tentative's parameters (Kalman, identity model)
-            e, Hb = _difference(f.kind, lm_w, lm.mean)
+            e, Hb = models.difference(f.kind, lm_w, lm.mean)
             Pb = Hb @ lm.cov @ Hb.T
             K = lm.cov @ (-Hb.T) @ np.linalg.inv(Pb + C)
             lm.mean = models.normalize(f.kind, lm.mean + K @ e)
@@ -264,7 +238,7 @@ class Lifecycle:
             qs = [a for a in queried if self.landmarks[a].kind == kind]
             if not qs:
                 continue
-            E = _differences(kind, np.array([means[a] for a in qs], dtype=float), M)
+            E = models.differences(kind, np.array([means[a] for a in qs], dtype=float), M)
             lim = np.where(models.ANGULAR[kind], p.duplicate_pregate_rad, p.duplicate_pregate_m)
             for a, ok in zip(qs, np.all(np.abs(E) <= lim, axis=2), strict=True):
                 near[a] = np.flatnonzero(ok)
@@ -289,7 +263,7 @@ class Lifecycle:
                     if geometry.overlap(means[a], la.ends, lb.ends) < -p.max_gap:
                         continue
                 m, P = estimate([a, b])
-                e, Hb = _difference(la.kind, m[a], m[b])
+                e, Hb = models.difference(la.kind, m[a], m[b])
                 n = len(e)
                 J = np.hstack([np.eye(n), Hb])
                 S = J @ P[3:, 3:] @ J.T

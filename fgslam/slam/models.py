@@ -1,6 +1,9 @@
-"""The measurement models of the three landmark kinds, seen from SLAM: one place that maps a
-feature kind to the shared prediction/residual/initialisation functions of ``factors`` and to
-its GTSAM factor. Features are in the robot frame, so the sensor mount is the identity.
+"""The three landmark kinds, seen from SLAM: one registry (:data:`KINDS`, a :class:`Kind`
+each) that maps a kind to the shared prediction/residual/initialisation functions of
+``factors``, its GTSAM value and factors, the difference of two landmarks (one line-flip
+rule) and the rotation of its tangent covariance into the world; the EKF, the graph, the
+association and the lifecycle ask it instead of branching on the kind. Features are in the
+robot frame, so the sensor mount is the identity.
 
 World parametrisations (what the EKF stores and the map reports): line (alpha, d); corner
 (x, y, theta) with theta the bisector into free space; point (x, y). Angles rad, lengths m.
@@ -9,6 +12,8 @@ World parametrisations (what the EKF stores and the map reports): line (alpha, d
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from dataclasses import dataclass
 
 import gtsam
 import numpy as np
@@ -20,13 +25,136 @@ from factors.corner import (
     corner_residual,
     corner_to_world,
 )
-from factors.geometry import wrap_angle
-from factors.line import flips, line_factor, line_residual, line_to_world, normalize_line
+from factors.geometry import wrap_angle, wrap_angles
+from factors.line import (
+    flips,
+    line_difference,
+    line_factor,
+    line_residual,
+    line_to_world,
+    normalize_line,
+)
 from factors.point import point_factor, point_residual, point_to_world
 from fgslam.frontend.features import Feature
 
-DIM = {"line": 2, "corner": 3, "point": 2}
-ANGULAR = {"line": (True, False), "corner": (False, False, True), "point": (False, False)}
+
+def _rot_block(th: float) -> NDArray[np.float64]:
+    c, s = math.cos(th), math.sin(th)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _line_equality(k1: int, k2: int, noise: gtsam.noiseModel.Base) -> gtsam.CustomFactor:
+    """Two line variables describe the same line (either parametrisation, by the one rule
+    :func:`factors.line.line_difference`)."""
+
+    def error(this, values, H):
+        e, Hb = line_difference(values.atVector(k1), values.atVector(k2))
+        if H is not None:
+            H[0], H[1] = np.eye(2), Hb
+        return e
+
+    return gtsam.CustomFactor(noise, [k1, k2], error)
+
+
+def _vector_difference(angular: tuple[bool, ...]):
+    def difference(a, b):
+        e = np.asarray(a, dtype=float) - np.asarray(b, dtype=float)
+        for i, ang in enumerate(angular):
+            if ang:
+                e[i] = wrap_angle(e[i])
+        return e, -np.eye(len(e))
+
+    return difference
+
+
+@dataclass(frozen=True)
+class Kind:
+    """One landmark kind: its world parameters' dimension and which are angles; the GTSAM
+    variable is a ``Pose2`` (``pose``) or a vector; ``difference(a, b)``: a - b of two world
+    landmarks and its Jacobian w.r.t. b; ``equality(k1, k2, noise)``: the factor tying two
+    variables of one landmark; ``tangent_to_world(mean)``: the rotation taking a tangent-space
+    covariance (GTSAM's) into world parameters."""
+
+    name: str
+    dim: int
+    angular: tuple[bool, ...]
+    pose: bool
+    difference: Callable
+    equality: Callable
+
+    def tangent_to_world(self, mean: NDArray[np.float64]) -> NDArray[np.float64]:
+        return _rot_block(float(mean[2])) if self.pose else np.eye(self.dim)
+
+    def value(self, lm: NDArray[np.float64]) -> object:
+        """The GTSAM value of world parameters ``lm``."""
+        if self.pose:
+            return gtsam.Pose2(float(lm[0]), float(lm[1]), float(lm[2]))
+        return np.asarray(lm, dtype=float)
+
+    def read(self, values: gtsam.Values, key: int) -> NDArray[np.float64]:
+        """World parameters of variable ``key`` in ``values``."""
+        if self.pose:
+            p = values.atPose2(key)
+            return np.array([p.x(), p.y(), p.theta()])
+        return np.array(values.atVector(key))
+
+    def read_isam(self, isam: gtsam.ISAM2, key: int) -> NDArray[np.float64]:
+        """World parameters of variable ``key`` solved by ``isam`` for now."""
+        if self.pose:
+            p = isam.calculateEstimatePose2(key)
+            return np.array([p.x(), p.y(), p.theta()])
+        return np.array(isam.calculateEstimateVector(key))
+
+
+def _pose2_equality(k1: int, k2: int, noise: gtsam.noiseModel.Base) -> gtsam.NonlinearFactor:
+    return gtsam.BetweenFactorPose2(k1, k2, gtsam.Pose2(), noise)
+
+
+def _point2_equality(k1: int, k2: int, noise: gtsam.noiseModel.Base) -> gtsam.NonlinearFactor:
+    return gtsam.BetweenFactorPoint2(k1, k2, np.zeros(2), noise)
+
+
+KINDS = {
+    "line": Kind("line", 2, (True, False), False, line_difference, _line_equality),
+    "corner": Kind(
+        "corner",
+        3,
+        (False, False, True),
+        True,
+        _vector_difference((False, False, True)),
+        _pose2_equality,
+    ),
+    "point": Kind(
+        "point", 2, (False, False), False, _vector_difference((False, False)), _point2_equality
+    ),
+}
+DIM = {k: v.dim for k, v in KINDS.items()}
+ANGULAR = {k: v.angular for k, v in KINDS.items()}
+
+
+def difference(
+    kind: str, a: NDArray[np.float64], b: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """a - b for two world landmarks of one kind, and its Jacobian w.r.t. b (lines: the one
+    line-flip rule, :func:`factors.line.line_difference`)."""
+    return KINDS[kind].difference(a, b)
+
+
+def differences(kind: str, a: NDArray[np.float64], M: NDArray[np.float64]) -> NDArray[np.float64]:
+    """:func:`difference` of ``a`` (dim,) or of each row of ``a`` (q, dim) against each row
+    of ``M`` (no Jacobians), vectorised: (n, dim) or (q, n, dim)."""
+    a = np.asarray(a, dtype=float)
+    E = a[..., None, :] - M
+    if kind == "line":
+        da = wrap_angles(E[..., 0])
+        f = flips(da)
+        E[..., 0] = np.where(f, wrap_angles(da - math.pi), da)
+        E[..., 1] = np.where(f, a[..., None, 1] + M[:, 1], E[..., 1])
+        return E
+    for i, ang in enumerate(KINDS[kind].angular):
+        if ang:
+            E[..., i] = wrap_angles(E[..., i])
+    return E
 
 
 def residual(
@@ -138,9 +266,7 @@ def factor(
 
 def value(kind: str, lm: NDArray[np.float64]) -> object:
     """The GTSAM value of a landmark's world parameters."""
-    if kind == "corner":
-        return gtsam.Pose2(float(lm[0]), float(lm[1]), float(lm[2]))
-    return np.asarray(lm, dtype=float)
+    return KINDS[kind].value(lm)
 
 
 def position(kind: str, lm: NDArray[np.float64]) -> NDArray[np.float64]:
