@@ -253,3 +253,38 @@ def test_an_uncertain_closure_enters_only_with_a_second_that_agrees():
     assert both == [first, good] and first.accepted and good.accepted
     closer._expire(3 + 4)  # the wrong one finds no partner in time
     assert wrong.reason == "unconfirmed" and not closer.pending
+
+
+def test_a_local_map_is_built_once_and_rebuilt_when_its_keyframes_move():
+    """The local map of an old keyframe is prepared for matching once and reused while its
+    keyframes keep their poses relative to it (the whole map may move); a keyframe that moves
+    by more than ``cache_xy`` makes it rebuilt, and a reused map gives the same match."""
+    import gtsam
+
+    rng = np.random.default_rng(6)
+    segs = _room()
+    truth = [np.array([1.5 + 0.5 * i, 3.0, 0.02 * i]) for i in range(5)]
+    closer = LoopCloser(LoopParams(), _mp())
+    for i, p in enumerate(truth):
+        closer.add_keyframe(i, _scan(segs, p, rng), p)
+    poses = np.array(truth)
+    ref, _ = closer.reference(2, poses)
+    assert closer.reference(2, poses)[0] is ref
+    moved = np.array([compose_poses((3.0, -1.0, 0.7), p) for p in truth])  # all together
+    assert closer.reference(2, moved)[0] is ref
+    assert (closer.stats["loop_maps_built"], closer.stats["loop_maps_reused"]) == (1, 2)
+    bent = poses.copy()
+    bent[3, 1] += 0.05  # one keyframe 5 cm off relative to the others
+    assert closer.reference(2, bent)[0] is not ref
+    assert closer.stats["loop_maps_built"] == 2
+    here = truth[2] + np.array([0.2, 0.1, 0.03])
+    closer.add_keyframe(5, _scan(segs, here, rng), here)
+    rel = gtsam.Pose2(*between_poses(truth[2], here))
+    cov = np.diag([0.05, 0.05, 0.01]) ** 2
+    cached = closer.verify(2, 5, bent, rel, cov)
+    assert closer.stats["loop_maps_reused"] == 3
+    fresh = LoopCloser(LoopParams(cache_size=0), _mp())
+    fresh.scans, fresh.speeds = closer.scans, closer.speeds
+    again = fresh.verify(2, 5, bent, rel, cov)
+    assert fresh.stats["loop_maps_built"] == 1
+    assert np.allclose(cached.pose, again.pose) and cached.reason == again.reason == ""

@@ -23,6 +23,10 @@ enter. A false match rarely repeats consistently. Accepted closures enter the gr
 robust between factors. Every attempt is kept in :attr:`LoopCloser.closures`
 (report.json, map.png).
 
+What a search costs (a match over the window is most of it; experiments/README.md, issue 14
+"Speed"): a candidate's local map is built once and kept (the last ``cache_size`` candidates)
+while its keyframes keep their poses relative to it (within ``cache_xy``, ``cache_theta``).
+
 Frames: scan points in the robot frame (m); poses (x, y, theta) in the world (m, rad).
 """
 
@@ -30,7 +34,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections import Counter
+from collections import Counter, OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -63,6 +67,11 @@ class LoopParams:
     min_score: float = 0.55
     min_overlap: float = 0.35
     gate_p: float = 0.999
+    # the search's cost (module doc): local maps kept (0: none) while no keyframe of one
+    # moved more than this relative to it (m, rad)
+    cache_size: int = 64
+    cache_xy: float = 0.01
+    cache_theta: float = math.radians(0.06)
     see_through_margin: float = 0.3
     max_see_through: float = 0.05
     grey_see_through: float = 0.10  # more seen through: rejected; above max_...: in doubt
@@ -112,6 +121,18 @@ class Closure:
 
 
 AWAITING = "awaiting confirmation"
+
+
+@dataclass
+class _LocalMap:
+    """A candidate's local map as built: its keyframes, their poses in the candidate's frame
+    (when they move, it is rebuilt), the points (candidate's frame) and the matcher's
+    :class:`fgslam.scanmatch.Reference` of them."""
+
+    keys: tuple[int, ...]
+    rel: NDArray[np.float64]
+    points: NDArray[np.float64]
+    ref: Reference
 
 
 def see_through(query: NDArray[np.float64], ref: NDArray[np.float64], pose, margin: float) -> float:
@@ -164,6 +185,7 @@ class LoopCloser:
         self.stats: Counter = Counter()
         self._gate = float(chi2.ppf(params.gate_p, 3))
         self.pending: list[Closure] = []  # verified, waiting for a second that agrees
+        self._maps: OrderedDict[int, _LocalMap] = OrderedDict()  # least recently used first
 
     def add_keyframe(
         self,
@@ -216,6 +238,32 @@ class LoopCloser:
                     np.repeat(transform_points(rel, self.origin), len(self.scans[i]), axis=0)
                 )
         return np.vstack(parts), np.vstack(origins)
+
+    def reference(self, j: int, poses: NDArray[np.float64]) -> tuple[Reference, NDArray]:
+        """Keyframe ``j``'s local map (:meth:`local_map`) prepared for matching, and its
+        points: the one built before while none of its keyframes moved more than
+        ``cache_xy`` / ``cache_theta`` relative to ``j`` since (module doc)."""
+        p = self.p
+        keys = tuple(i for i in range(j - p.neighbours, j + p.neighbours + 1) if i in self.scans)
+        keys = tuple(i for i in keys if i < len(poses))
+        rel = np.array([between_poses(poses[j], poses[i]) for i in keys]).reshape(-1, 3)
+        m = self._maps.get(j)
+        if m is not None and m.keys == keys:
+            d = rel - m.rel
+            dth = np.abs(np.remainder(d[:, 2] + math.pi, 2 * math.pi) - math.pi)
+            if np.hypot(d[:, 0], d[:, 1]).max() <= p.cache_xy and dth.max() <= p.cache_theta:
+                self._maps.move_to_end(j)
+                self.stats["loop_maps_reused"] += 1
+                return m.ref, m.points
+        points, origins = self.local_map(j, poses)
+        ref = Reference.build(points, self.mp, origins)
+        self.stats["loop_maps_built"] += 1
+        if p.cache_size > 0:
+            self._maps[j] = _LocalMap(keys, rel, points, ref)
+            self._maps.move_to_end(j)
+            while len(self._maps) > p.cache_size:
+                self._maps.popitem(last=False)
+        return ref, points
 
     def try_close(self, k: int, backend, pose) -> list[Closure]:
         """The closures of keyframe ``k`` (already added with :meth:`add_keyframe`) with the
@@ -285,8 +333,7 @@ class LoopCloser:
             search_xy=float(np.clip(3.0 * max(sd[0], sd[1]), p.min_search_xy, p.max_search_xy)),
             search_theta=float(np.clip(3.0 * sd[2], p.min_search_theta, p.max_search_theta)),
         )
-        ref_points, origins = self.local_map(j, poses)
-        ref = Reference.build(ref_points, mp, origins)
+        ref, ref_points = self.reference(j, poses)
         m = match(ref, self.scans[k], guess, mp)
         cov = timing_inflation(
             np.asarray(m.cov),
