@@ -255,6 +255,23 @@ def test_an_uncertain_closure_enters_only_with_a_second_that_agrees():
     assert wrong.reason == "unconfirmed" and not closer.pending
 
 
+class _Backend:
+    """The two things loop closure asks of a backend, from given poses (the last: the
+    current keyframe's prediction) and a fixed relative covariance."""
+
+    def __init__(self, poses, cov=None):
+        self.poses = [np.asarray(p, dtype=float) for p in poses]
+        self.cov = np.diag([0.05, 0.05, math.radians(1.0)]) ** 2 if cov is None else cov
+
+    def keyframe_poses(self):
+        return np.array(self.poses[:-1]).reshape(-1, 3)
+
+    def relative(self, j):
+        import gtsam
+
+        return gtsam.Pose2(*between_poses(self.poses[j], self.poses[-1])), self.cov.copy()
+
+
 def test_a_local_map_is_built_once_and_rebuilt_when_its_keyframes_move():
     """The local map of an old keyframe is prepared for matching once and reused while its
     keyframes keep their poses relative to it (the whole map may move); a keyframe that moves
@@ -288,3 +305,38 @@ def test_a_local_map_is_built_once_and_rebuilt_when_its_keyframes_move():
     again = fresh.verify(2, 5, bent, rel, cov)
     assert fresh.stats["loop_maps_built"] == 1
     assert np.allclose(cached.pose, again.pose) and cached.reason == again.reason == ""
+
+
+_TOUR = [(2.0, 3.0, 0.0), (12.0, 3.0, 0.0), (12.0, 13.0, 0.0), (2.0, 13.0, 0.0)]
+
+
+def _back_at_the_start(params, backend, back, seed=8):
+    """Keyframe 0 in the room, a tour of 40 m away and back (``_TOUR``), then the keyframes ``back``
+    next to it, each trying to close loops with ``backend`` (a :class:`_Backend` type).
+    Returns the loop closer and the keyframes at which a match was tried."""
+    rng = np.random.default_rng(seed)
+    segs = _room()
+    closer = LoopCloser(params, _mp())
+    tried, poses = [], []
+    for k, p in enumerate(_TOUR + back):
+        poses.append(np.array(p, dtype=float))
+        closer.add_keyframe(k, _scan(segs, p, rng), p)
+        if k:
+            n = len(closer.closures)
+            closer.try_close(k, backend(poses), p)
+            tried += [c.k for c in closer.closures[n:]]
+    return closer, tried
+
+
+def test_a_candidate_whose_local_map_did_not_look_where_the_scan_looks_is_not_matched():
+    """Back at the start facing the other way (the old keyframe's scan saw the room ahead of
+    it, the new one sees what was behind it): with ``min_view`` the candidate is skipped
+    without a match; without, it is matched (and fails)."""
+    back = [(2.3, 3.1, math.pi)]
+    closer, tried = _back_at_the_start(LoopParams(min_view=0.0), _Backend, back)
+    assert tried == [4] and not closer.closures[0].accepted
+    closer, tried = _back_at_the_start(LoopParams(), _Backend, back)
+    assert tried == [] and closer.stats["loop_skipped_little_view"] == 1
+    # the same place facing the same way is matched and verified
+    closer, tried = _back_at_the_start(LoopParams(), _Backend, [(2.3, 3.1, 0.05)])
+    assert tried == [4] and closer.closures[0].reason in ("", AWAITING)

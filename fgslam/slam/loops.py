@@ -25,7 +25,11 @@ robust between factors. Every attempt is kept in :attr:`LoopCloser.closures`
 
 What a search costs (a match over the window is most of it; experiments/README.md, issue 14
 "Speed"): a candidate's local map is built once and kept (the last ``cache_size`` candidates)
-while its keyframes keep their poses relative to it (within ``cache_xy``, ``cache_theta``).
+while its keyframes keep their poses relative to it (within ``cache_xy``, ``cache_theta``). A
+candidate is not matched when the local map's beams cover less than ``min_view`` of the
+current scan placed at the predicted pose (the old scans looked elsewhere: the robot passes
+facing the other way; of such matches none passed on MIT CSAIL, Intel and Freiburg 079: 115,
+24 and 169).
 
 Frames: scan points in the robot frame (m); poses (x, y, theta) in the world (m, rad).
 """
@@ -67,8 +71,10 @@ class LoopParams:
     min_score: float = 0.55
     min_overlap: float = 0.35
     gate_p: float = 0.999
-    # the search's cost (module doc): local maps kept (0: none) while no keyframe of one
-    # moved more than this relative to it (m, rad)
+    # the search's cost (module doc): no match over less view than this (0: always match);
+    # local maps kept (0: none) while no keyframe of one moved more than this relative to it
+    # (m, rad)
+    min_view: float = 0.3
     cache_size: int = 64
     cache_xy: float = 0.01
     cache_theta: float = math.radians(0.06)
@@ -265,6 +271,12 @@ class LoopCloser:
                 self._maps.popitem(last=False)
         return ref, points
 
+    def view(self, k: int, ref: Reference, guess) -> float:
+        """The fraction of keyframe ``k``'s scan that, placed at ``guess`` (x, y, theta in the
+        local map's frame), lies in directions the local map's beams covered."""
+        q = transform_points(np.asarray(guess, dtype=float), self.scans[k])
+        return float(np.mean(ref.covered(q))) if len(q) else 0.0
+
     def try_close(self, k: int, backend, pose) -> list[Closure]:
         """The closures of keyframe ``k`` (already added with :meth:`add_keyframe`) with the
         backend's estimate; returns the accepted ones (all attempts go to ``closures``)."""
@@ -275,7 +287,13 @@ class LoopCloser:
         out: list[Closure] = []
         self._expire(k)
         for j in self.candidates(k, poses, pose):
-            c = self.verify(j, k, poses, *backend.relative(j))
+            rel, rel_cov = backend.relative(j)
+            if p.min_view > 0:
+                ref, _ = self.reference(j, poses)
+                if self.view(k, ref, (rel.x(), rel.y(), rel.theta())) < p.min_view:
+                    self.stats["loop_skipped_little_view"] += 1
+                    continue
+            c = self.verify(j, k, poses, rel, rel_cov)
             self.closures.append(c)
             self.stats["loop_closures_tried"] += 1
             if c.reason == AWAITING:
