@@ -340,3 +340,25 @@ def test_a_candidate_whose_local_map_did_not_look_where_the_scan_looks_is_not_ma
     # the same place facing the same way is matched and verified
     closer, tried = _back_at_the_start(LoopParams(), _Backend, [(2.3, 3.1, 0.05)])
     assert tried == [4] and closer.closures[0].reason in ("", AWAITING)
+
+
+class _Off(_Backend):
+    """An estimate that believes the robot 0.6 m further along than it is, and is sure."""
+
+    def relative(self, j):
+        import gtsam
+
+        d = between_poses(self.poses[j], self.poses[-1]) + np.array([0.6, 0.0, 0.0])
+        return gtsam.Pose2(*d), np.diag([0.01, 0.01, 0.002]) ** 2
+
+
+def test_a_place_whose_match_was_rejected_waits_before_it_is_tried_again():
+    """Back at the start with an estimate 0.6 m off and sure of itself, the window too small
+    to reach the truth (the match is rejected): with ``retry_after`` 3 the place is tried
+    at every fourth keyframe, without at each."""
+    back = [(2.3 + 0.05 * i, 3.1, 0.05) for i in range(10)]
+    small = {"min_search_xy": 0.3, "max_search_xy": 0.3}
+    for retry, expect in ((0, list(range(4, 14))), (3, [4, 8, 12])):
+        closer, tried = _back_at_the_start(LoopParams(retry_after=retry, **small), _Off, back)
+        assert tried == expect, (retry, tried)
+        assert not any(c.accepted or c.reason == AWAITING for c in closer.closures)
