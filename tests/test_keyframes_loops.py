@@ -310,13 +310,13 @@ def test_a_local_map_is_built_once_and_rebuilt_when_its_keyframes_move():
 _TOUR = [(2.0, 3.0, 0.0), (12.0, 3.0, 0.0), (12.0, 13.0, 0.0), (2.0, 13.0, 0.0)]
 
 
-def _back_at_the_start(params, backend, back, seed=8):
-    """Keyframe 0 in the room, a tour of 40 m away and back (``_TOUR``), then the keyframes ``back``
-    next to it, each trying to close loops with ``backend`` (a :class:`_Backend` type).
-    Returns the loop closer and the keyframes at which a match was tried."""
+def _back_at_the_start(params, backend, back, seed=8, closer_type=LoopCloser):
+    """Keyframe 0 in the room, a tour of 40 m away and back (``_TOUR``), then the keyframes
+    ``back`` next to it, each trying to close loops with ``backend`` (a :class:`_Backend`
+    type). Returns the loop closer and the keyframes at which a match was tried."""
     rng = np.random.default_rng(seed)
     segs = _room()
-    closer = LoopCloser(params, _mp())
+    closer = closer_type(params, _mp())
     tried, poses = [], []
     for k, p in enumerate(_TOUR + back):
         poses.append(np.array(p, dtype=float))
@@ -343,22 +343,43 @@ def test_a_candidate_whose_local_map_did_not_look_where_the_scan_looks_is_not_ma
 
 
 class _Off(_Backend):
-    """An estimate that believes the robot 0.6 m further along than it is, and is sure."""
+    """An estimate that believes the robot 0.6 m to the left of where it is, and is sure."""
 
     def relative(self, j):
         import gtsam
 
-        d = between_poses(self.poses[j], self.poses[-1]) + np.array([0.6, 0.0, 0.0])
+        d = between_poses(self.poses[j], self.poses[-1]) + np.array([0.0, 0.6, 0.0])
         return gtsam.Pose2(*d), np.diag([0.01, 0.01, 0.002]) ** 2
 
 
 def test_a_place_whose_match_was_rejected_waits_before_it_is_tried_again():
     """Back at the start with an estimate 0.6 m off and sure of itself, the window too small
-    to reach the truth (the match is rejected): with ``retry_after`` 3 the place is tried
-    at every fourth keyframe, without at each."""
+    to reach the truth (nothing there fits the scan: low score): with ``retry_after`` 3 the
+    place is tried at every fourth keyframe, without at each."""
     back = [(2.3 + 0.05 * i, 3.1, 0.05) for i in range(10)]
     small = {"min_search_xy": 0.3, "max_search_xy": 0.3}
     for retry, expect in ((0, list(range(4, 14))), (3, [4, 8, 12])):
         closer, tried = _back_at_the_start(LoopParams(retry_after=retry, **small), _Off, back)
         assert tried == expect, (retry, tried)
-        assert not any(c.accepted or c.reason == AWAITING for c in closer.closures)
+        assert all(c.reason.startswith("low score") for c in closer.closures)
+
+
+def test_a_place_that_fitted_but_was_doubted_is_tried_again_at_once():
+    """A match rejected as ambiguous or seeing through the old place found the place (the
+    next keyframe often passes): no waiting. One that found nothing there waits."""
+    from fgslam.slam.loops import Closure
+
+    back = [(2.3 + 0.05 * i, 3.1, 0.05) for i in range(5)]
+    for reason, expect in (
+        ("ambiguous (0.60 > 0.5)", [4, 5, 6, 7, 8]),
+        ("sees through the old place", [4, 5, 6, 7, 8]),
+        ("low score (0.30 < 0.5)", [4, 8]),
+        ("diverged (ICP left the search result)", [4, 8]),
+    ):
+
+        class Rejecting(LoopCloser):
+            def verify(self, j, k, poses, rel, rel_cov):
+                return Closure(j, k, np.zeros(3), np.eye(3), False, reason)
+
+        _, tried = _back_at_the_start(LoopParams(), _Backend, back, closer_type=Rejecting)
+        assert tried == expect, (reason, tried)
