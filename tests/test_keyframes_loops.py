@@ -253,3 +253,133 @@ def test_an_uncertain_closure_enters_only_with_a_second_that_agrees():
     assert both == [first, good] and first.accepted and good.accepted
     closer._expire(3 + 4)  # the wrong one finds no partner in time
     assert wrong.reason == "unconfirmed" and not closer.pending
+
+
+class _Backend:
+    """The two things loop closure asks of a backend, from given poses (the last: the
+    current keyframe's prediction) and a fixed relative covariance."""
+
+    def __init__(self, poses, cov=None):
+        self.poses = [np.asarray(p, dtype=float) for p in poses]
+        self.cov = np.diag([0.05, 0.05, math.radians(1.0)]) ** 2 if cov is None else cov
+
+    def keyframe_poses(self):
+        return np.array(self.poses[:-1]).reshape(-1, 3)
+
+    def relative(self, j):
+        import gtsam
+
+        return gtsam.Pose2(*between_poses(self.poses[j], self.poses[-1])), self.cov.copy()
+
+
+def test_a_local_map_is_built_once_and_rebuilt_when_its_keyframes_move():
+    """The local map of an old keyframe is prepared for matching once and reused while its
+    keyframes keep their poses relative to it (the whole map may move); a keyframe that moves
+    by more than ``cache_xy`` makes it rebuilt, and a reused map gives the same match."""
+    import gtsam
+
+    rng = np.random.default_rng(6)
+    segs = _room()
+    truth = [np.array([1.5 + 0.5 * i, 3.0, 0.02 * i]) for i in range(5)]
+    closer = LoopCloser(LoopParams(), _mp())
+    for i, p in enumerate(truth):
+        closer.add_keyframe(i, _scan(segs, p, rng), p)
+    poses = np.array(truth)
+    ref, _ = closer.reference(2, poses)
+    assert closer.reference(2, poses)[0] is ref
+    moved = np.array([compose_poses((3.0, -1.0, 0.7), p) for p in truth])  # all together
+    assert closer.reference(2, moved)[0] is ref
+    assert (closer.stats["loop_maps_built"], closer.stats["loop_maps_reused"]) == (1, 2)
+    bent = poses.copy()
+    bent[3, 1] += 0.05  # one keyframe 5 cm off relative to the others
+    assert closer.reference(2, bent)[0] is not ref
+    assert closer.stats["loop_maps_built"] == 2
+    here = truth[2] + np.array([0.2, 0.1, 0.03])
+    closer.add_keyframe(5, _scan(segs, here, rng), here)
+    rel = gtsam.Pose2(*between_poses(truth[2], here))
+    cov = np.diag([0.05, 0.05, 0.01]) ** 2
+    cached = closer.verify(2, 5, bent, rel, cov)
+    assert closer.stats["loop_maps_reused"] == 3
+    fresh = LoopCloser(LoopParams(cache_size=0), _mp())
+    fresh.scans, fresh.speeds = closer.scans, closer.speeds
+    again = fresh.verify(2, 5, bent, rel, cov)
+    assert fresh.stats["loop_maps_built"] == 1
+    assert np.allclose(cached.pose, again.pose) and cached.reason == again.reason == ""
+
+
+_TOUR = [(2.0, 3.0, 0.0), (12.0, 3.0, 0.0), (12.0, 13.0, 0.0), (2.0, 13.0, 0.0)]
+
+
+def _back_at_the_start(params, backend, back, seed=8, closer_type=LoopCloser):
+    """Keyframe 0 in the room, a tour of 40 m away and back (``_TOUR``), then the keyframes
+    ``back`` next to it, each trying to close loops with ``backend`` (a :class:`_Backend`
+    type). Returns the loop closer and the keyframes at which a match was tried."""
+    rng = np.random.default_rng(seed)
+    segs = _room()
+    closer = closer_type(params, _mp())
+    tried, poses = [], []
+    for k, p in enumerate(_TOUR + back):
+        poses.append(np.array(p, dtype=float))
+        closer.add_keyframe(k, _scan(segs, p, rng), p)
+        if k:
+            n = len(closer.closures)
+            closer.try_close(k, backend(poses), p)
+            tried += [c.k for c in closer.closures[n:]]
+    return closer, tried
+
+
+def test_a_candidate_whose_local_map_did_not_look_where_the_scan_looks_is_not_matched():
+    """Back at the start facing the other way (the old keyframe's scan saw the room ahead of
+    it, the new one sees what was behind it): with ``min_view`` the candidate is skipped
+    without a match; without, it is matched (and fails)."""
+    back = [(2.3, 3.1, math.pi)]
+    closer, tried = _back_at_the_start(LoopParams(min_view=0.0), _Backend, back)
+    assert tried == [4] and not closer.closures[0].accepted
+    closer, tried = _back_at_the_start(LoopParams(), _Backend, back)
+    assert tried == [] and closer.stats["loop_skipped_little_view"] == 1
+    # the same place facing the same way is matched and verified
+    closer, tried = _back_at_the_start(LoopParams(), _Backend, [(2.3, 3.1, 0.05)])
+    assert tried == [4] and closer.closures[0].reason in ("", AWAITING)
+
+
+class _Off(_Backend):
+    """An estimate that believes the robot 0.6 m to the left of where it is, and is sure."""
+
+    def relative(self, j):
+        import gtsam
+
+        d = between_poses(self.poses[j], self.poses[-1]) + np.array([0.0, 0.6, 0.0])
+        return gtsam.Pose2(*d), np.diag([0.01, 0.01, 0.002]) ** 2
+
+
+def test_a_place_whose_match_was_rejected_waits_before_it_is_tried_again():
+    """Back at the start with an estimate 0.6 m off and sure of itself, the window too small
+    to reach the truth (nothing there fits the scan: low score): with ``retry_after`` 3 the
+    place is tried at every fourth keyframe, without at each."""
+    back = [(2.3 + 0.05 * i, 3.1, 0.05) for i in range(10)]
+    small = {"min_search_xy": 0.3, "max_search_xy": 0.3}
+    for retry, expect in ((0, list(range(4, 14))), (3, [4, 8, 12])):
+        closer, tried = _back_at_the_start(LoopParams(retry_after=retry, **small), _Off, back)
+        assert tried == expect, (retry, tried)
+        assert all(c.reason.startswith("low score") for c in closer.closures)
+
+
+def test_a_place_that_fitted_but_was_doubted_is_tried_again_at_once():
+    """A match rejected as ambiguous or seeing through the old place found the place (the
+    next keyframe often passes): no waiting. One that found nothing there waits."""
+    from fgslam.slam.loops import Closure
+
+    back = [(2.3 + 0.05 * i, 3.1, 0.05) for i in range(5)]
+    for reason, expect in (
+        ("ambiguous (0.60 > 0.5)", [4, 5, 6, 7, 8]),
+        ("sees through the old place", [4, 5, 6, 7, 8]),
+        ("low score (0.30 < 0.5)", [4, 8]),
+        ("diverged (ICP left the search result)", [4, 8]),
+    ):
+
+        class Rejecting(LoopCloser):
+            def verify(self, j, k, poses, rel, rel_cov):
+                return Closure(j, k, np.zeros(3), np.eye(3), False, reason)
+
+        _, tried = _back_at_the_start(LoopParams(), _Backend, back, closer_type=Rejecting)
+        assert tried == expect, (reason, tried)

@@ -18,6 +18,7 @@ pose in the frame of the last keyframe.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections import Counter, deque
 from dataclasses import dataclass
@@ -81,7 +82,7 @@ class KeyframeParams:
     @property
     def motion_gate(self) -> float:
         """The squared Mahalanobis bound of :attr:`motion_gate_p` (3 dof)."""
-        return float(chi2.ppf(self.motion_gate_p, 3))
+        return _chi2_3(self.motion_gate_p)
 
     @property
     def matching(self) -> bool:
@@ -115,6 +116,12 @@ def timing_inflation(
     return time_registration_inflation(
         cov, (False, False, True), math.hypot(v0, v1), math.hypot(w0, w1), sigma_time
     )
+
+
+@functools.cache
+def _chi2_3(p: float) -> float:
+    """scipy's chi-square quantile ``p`` for 3 dof, remembered (0.3 ms a call)."""
+    return float(chi2.ppf(p, 3))
 
 
 def _key(reason: str) -> str:

@@ -23,6 +23,20 @@ enter. A false match rarely repeats consistently. Accepted closures enter the gr
 robust between factors. Every attempt is kept in :attr:`LoopCloser.closures`
 (report.json, map.png).
 
+What a search costs (a match over the window is most of it; experiments/README.md, issue 14
+"Speed"): a candidate's local map is built once and kept (the last ``cache_size`` candidates)
+while its keyframes keep their poses relative to it (within ``cache_xy``, ``cache_theta``). A
+candidate is not matched when the local map's beams cover less than ``min_view`` of the
+current scan placed at the predicted pose (the old scans looked elsewhere: the robot passes
+facing the other way; of such matches none passed on MIT CSAIL, Intel and Freiburg 079: 115,
+24 and 169), nor when its place (it or a keyframe within 2 ``neighbours`` of it) had a match
+rejected at most ``retry_after`` keyframes ago because nothing there fitted the scan (low
+score or overlap, too few correspondences, diverged): such a failure mostly repeats at the
+next keyframe (there, 52 of 594, 153 of 714 and 100 of 1577 such matches passed), while a
+place that fitted but was ambiguous or seen through often passes soon after (27 of 69, 99 of
+167, 2 of 5): it is tried again at once (backing off after every rejection, Intel kept 545
+of its 707 closures and scored 0.049 instead of 0.048 m).
+
 Frames: scan points in the robot frame (m); poses (x, y, theta) in the world (m, rad).
 """
 
@@ -30,7 +44,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections import Counter
+from collections import Counter, OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -63,6 +77,14 @@ class LoopParams:
     min_score: float = 0.55
     min_overlap: float = 0.35
     gate_p: float = 0.999
+    # the search's cost (module doc): no match over less view than this (0: always match);
+    # none at a place with a match rejected this many keyframes ago or less (0: always); local
+    # maps kept (0: none) while no keyframe of one moved more than this relative to it (m, rad)
+    min_view: float = 0.3
+    retry_after: int = 3
+    cache_size: int = 64
+    cache_xy: float = 0.01
+    cache_theta: float = math.radians(0.06)
     see_through_margin: float = 0.3
     max_see_through: float = 0.05
     grey_see_through: float = 0.10  # more seen through: rejected; above max_...: in doubt
@@ -112,6 +134,20 @@ class Closure:
 
 
 AWAITING = "awaiting confirmation"
+# rejections of a match that found the old place but doubted it: tried again at once
+FITTED = ("ambiguous", "sees through the old place")
+
+
+@dataclass
+class _LocalMap:
+    """A candidate's local map as built: its keyframes, their poses in the candidate's frame
+    (when they move, it is rebuilt), the points (candidate's frame) and the matcher's
+    :class:`fgslam.scanmatch.Reference` of them."""
+
+    keys: tuple[int, ...]
+    rel: NDArray[np.float64]
+    points: NDArray[np.float64]
+    ref: Reference
 
 
 def see_through(query: NDArray[np.float64], ref: NDArray[np.float64], pose, margin: float) -> float:
@@ -164,6 +200,8 @@ class LoopCloser:
         self.stats: Counter = Counter()
         self._gate = float(chi2.ppf(params.gate_p, 3))
         self.pending: list[Closure] = []  # verified, waiting for a second that agrees
+        self._maps: OrderedDict[int, _LocalMap] = OrderedDict()  # least recently used first
+        self._rejected: list[tuple[int, int]] = []  # (j, k) of the recent rejected matches
 
     def add_keyframe(
         self,
@@ -217,6 +255,38 @@ class LoopCloser:
                 )
         return np.vstack(parts), np.vstack(origins)
 
+    def reference(self, j: int, poses: NDArray[np.float64]) -> tuple[Reference, NDArray]:
+        """Keyframe ``j``'s local map (:meth:`local_map`) prepared for matching, and its
+        points: the one built before while none of its keyframes moved more than
+        ``cache_xy`` / ``cache_theta`` relative to ``j`` since (module doc)."""
+        p = self.p
+        keys = tuple(i for i in range(j - p.neighbours, j + p.neighbours + 1) if i in self.scans)
+        keys = tuple(i for i in keys if i < len(poses))
+        rel = np.array([between_poses(poses[j], poses[i]) for i in keys]).reshape(-1, 3)
+        m = self._maps.get(j)
+        if m is not None and m.keys == keys:
+            d = rel - m.rel
+            dth = np.abs(np.remainder(d[:, 2] + math.pi, 2 * math.pi) - math.pi)
+            if np.hypot(d[:, 0], d[:, 1]).max() <= p.cache_xy and dth.max() <= p.cache_theta:
+                self._maps.move_to_end(j)
+                self.stats["loop_maps_reused"] += 1
+                return m.ref, m.points
+        points, origins = self.local_map(j, poses)
+        ref = Reference.build(points, self.mp, origins)
+        self.stats["loop_maps_built"] += 1
+        if p.cache_size > 0:
+            self._maps[j] = _LocalMap(keys, rel, points, ref)
+            self._maps.move_to_end(j)
+            while len(self._maps) > p.cache_size:
+                self._maps.popitem(last=False)
+        return ref, points
+
+    def view(self, k: int, ref: Reference, guess) -> float:
+        """The fraction of keyframe ``k``'s scan that, placed at ``guess`` (x, y, theta in the
+        local map's frame), lies in directions the local map's beams covered."""
+        q = transform_points(np.asarray(guess, dtype=float), self.scans[k])
+        return float(np.mean(ref.covered(q))) if len(q) else 0.0
+
     def try_close(self, k: int, backend, pose) -> list[Closure]:
         """The closures of keyframe ``k`` (already added with :meth:`add_keyframe`) with the
         backend's estimate; returns the accepted ones (all attempts go to ``closures``)."""
@@ -226,8 +296,18 @@ class LoopCloser:
         poses = backend.keyframe_poses()
         out: list[Closure] = []
         self._expire(k)
+        self._rejected = [(j, kr) for j, kr in self._rejected if k - kr <= p.retry_after]
         for j in self.candidates(k, poses, pose):
-            c = self.verify(j, k, poses, *backend.relative(j))
+            if any(abs(j - jr) <= 2 * p.neighbours for jr, _ in self._rejected):
+                self.stats["loop_skipped_place_just_rejected"] += 1
+                continue
+            rel, rel_cov = backend.relative(j)
+            if p.min_view > 0:
+                ref, _ = self.reference(j, poses)
+                if self.view(k, ref, (rel.x(), rel.y(), rel.theta())) < p.min_view:
+                    self.stats["loop_skipped_little_view"] += 1
+                    continue
+            c = self.verify(j, k, poses, rel, rel_cov)
             self.closures.append(c)
             self.stats["loop_closures_tried"] += 1
             if c.reason == AWAITING:
@@ -237,6 +317,8 @@ class LoopCloser:
                 out.append(c)
             else:
                 self.stats[f"loop_rejected_{_key(c.reason)}"] += 1
+                if not c.reason.startswith(FITTED):
+                    self._rejected.append((j, k))
         return out
 
     def _expire(self, k: int) -> None:
@@ -285,8 +367,7 @@ class LoopCloser:
             search_xy=float(np.clip(3.0 * max(sd[0], sd[1]), p.min_search_xy, p.max_search_xy)),
             search_theta=float(np.clip(3.0 * sd[2], p.min_search_theta, p.max_search_theta)),
         )
-        ref_points, origins = self.local_map(j, poses)
-        ref = Reference.build(ref_points, mp, origins)
+        ref, ref_points = self.reference(j, poses)
         m = match(ref, self.scans[k], guess, mp)
         cov = timing_inflation(
             np.asarray(m.cov),

@@ -1,0 +1,163 @@
+"""CPU cost of laser-only SLAM on the real logs end to end (issue 14's speed targets: MIT CSAIL
+at least 10x faster than real time, Freiburg 079 at least 5x), optionally side by side with
+another revision of the code.
+
+Run: python experiments/bench_real_speed.py [--logs mit-csail freiburg-079]
+       [--backends isam2] [--max-scans N] [--compare REV] [--repeat N]
+Each run is a child process (``PYTHONPATH`` = the tree under test) that reads
+``../shared/data/<log>``, runs :func:`fgslam.slam.runner.run_backends` with the scan-matching
+defaults (``experiments/real_relations.py``'s "scan" mode: scan and wheel odometry, keyframes
+by motion, loop closures on) and reports its process CPU time, its wall time, the CPU time
+spent in loop-closure search (:meth:`fgslam.slam.loops.LoopCloser.try_close`), the loop
+attempts and the accepted closures. ``--compare REV`` checks REV out into a temporary git
+worktree and runs it alternately with this tree (REV first), so that both share the
+machine's load; on a shared machine compare CPU seconds, not wall seconds. The real-time
+factor is log seconds / CPU seconds. Prints one markdown row per run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT / ".." / "shared" / "data"
+FILES = {
+    "intel": "intel-corrected.log.gz",
+    "freiburg-079": "freiburg-079-corrected.log.gz",
+    "mit-csail": "mit-csail.clf",
+}
+SCAN = {"odometry": "both", "keyframes": "motion", "loop_closures": "on"}
+
+
+def child(log: str, backends: list[str], max_scans: int | None) -> dict:
+    """One run in this process (the fgslam on ``sys.path``): its measurements."""
+    import fgslam
+    from fgslam.config import with_scanmatch
+    from fgslam.events import LaserScan
+    from fgslam.readers import open_log
+    from fgslam.slam import loops
+    from fgslam.slam.runner import run_backends
+
+    loop_cpu = [0.0]
+    try_close = loops.LoopCloser.try_close
+
+    def timed(self, *a, **kw):
+        t0 = time.process_time()
+        try:
+            return try_close(self, *a, **kw)
+        finally:
+            loop_cpu[0] += time.process_time() - t0
+
+    loops.LoopCloser.try_close = timed
+
+    def limited(events):
+        n = 0
+        for ev in events:
+            if isinstance(ev, LaserScan):
+                n += 1
+                if max_scans is not None and n > max_scans:
+                    return
+            yield ev
+
+    reader = open_log(DATA / FILES[log])
+    cfg = with_scanmatch(reader.config, SCAN)
+    c0, w0 = time.process_time(), time.perf_counter()
+    results = run_backends(limited(reader), cfg, backends, "laser")
+    cpu, wall = time.process_time() - c0, time.perf_counter() - w0
+    res = results[0]
+    return {
+        "tree": str(Path(fgslam.__file__).resolve().parents[1]),
+        "log": log,
+        "backends": "+".join(backends),
+        "log_s": res.log_duration,
+        "cpu_s": cpu,
+        "wall_s": wall,
+        "loop_cpu_s": loop_cpu[0],
+        "attempts": int(res.stats.get("loop_closures_tried", 0)),
+        "accepted": sum(bool(c["accepted"]) for c in res.loop_closures),
+        "keyframes": len(res.times),
+    }
+
+
+def run_child(tree: Path, log: str, backends: list[str], max_scans: int | None) -> dict:
+    env = dict(os.environ, PYTHONPATH=str(tree))
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--child", "--logs", log]
+    cmd += ["--backends", *backends]
+    if max_scans is not None:
+        cmd += ["--max-scans", str(max_scans)]
+    out = subprocess.run(cmd, env=env, check=True, capture_output=True, text=True).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def revision(tree: Path) -> str:
+    git = ["git", "-C", str(tree), "rev-parse", "--short", "HEAD"]
+    rev = subprocess.run(git, check=True, capture_output=True, text=True).stdout.strip()
+    dirty = subprocess.run(
+        ["git", "-C", str(tree), "status", "--porcelain", "--untracked-files=no"],
+        check=True,
+        capture_output=True,
+        text=True,
+    ).stdout.strip()
+    return rev + ("+" if dirty else "")
+
+
+def row(label: str, r: dict) -> str:
+    rt = r["log_s"] / r["cpu_s"] if r["cpu_s"] else float("nan")
+    return (
+        f"| {r['log']} | {r['backends']} | {label} | {r['log_s']:.0f} | {r['cpu_s']:.1f} | "
+        f"{r['wall_s']:.1f} | {rt:.1f}x | {r['loop_cpu_s']:.1f} | {r['attempts']} | "
+        f"{r['accepted']} | {r['keyframes']} |"
+    )
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--logs", nargs="+", default=["mit-csail", "freiburg-079"], choices=FILES)
+    ap.add_argument("--backends", nargs="+", default=["isam2"])
+    ap.add_argument("--max-scans", type=int, default=None)
+    ap.add_argument("--compare", metavar="REV", help="also run this git revision, alternately")
+    ap.add_argument("--repeat", type=int, default=1, help="runs of each tree per log")
+    ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.child:
+        print(json.dumps(child(args.logs[0], args.backends, args.max_scans)))
+        return
+    trees = [(revision(ROOT), ROOT)]
+    with tempfile.TemporaryDirectory(prefix="bench_real_speed_") as tmp:
+        if args.compare:
+            other = Path(tmp) / "tree"
+            subprocess.run(
+                ["git", "-C", str(ROOT), "worktree", "add", "--detach", str(other), args.compare],
+                check=True,
+                capture_output=True,
+            )
+            trees.insert(0, (revision(other), other))
+        try:
+            print(
+                "| log | backend | code | log (s) | CPU (s) | wall (s) | real time / CPU | "
+                "loop search CPU (s) | loop attempts | accepted | keyframes |"
+            )
+            print("|---|---|---|---|---|---|---|---|---|---|---|")
+            for log in args.logs:
+                for _ in range(args.repeat):
+                    for label, tree in trees:
+                        r = run_child(tree, log, args.backends, args.max_scans)
+                        print(row(label, r), flush=True)
+        finally:
+            if args.compare:
+                subprocess.run(
+                    ["git", "-C", str(ROOT), "worktree", "remove", "--force", str(other)],
+                    check=False,
+                    capture_output=True,
+                )
+
+
+if __name__ == "__main__":
+    main()
