@@ -3,7 +3,7 @@ at least 10x faster than real time, Freiburg 079 at least 5x), optionally side b
 another revision of the code.
 
 Run: python experiments/bench_real_speed.py [--logs mit-csail freiburg-079]
-       [--backends isam2] [--max-scans N] [--compare REV] [--repeat N]
+       [--backends isam2] [--max-scans N] [--compare REV] [--repeat N] [--profile]
 Each run is a child process (``PYTHONPATH`` = the tree under test) that reads
 ``../shared/data/<log>``, runs :func:`fgslam.slam.runner.run_backends` with the scan-matching
 defaults (``experiments/real_relations.py``'s "scan" mode: scan and wheel odometry, keyframes
@@ -12,12 +12,16 @@ spent in loop-closure search (:meth:`fgslam.slam.loops.LoopCloser.try_close`), t
 attempts and the accepted closures. ``--compare REV`` checks REV out into a temporary git
 worktree and runs it alternately with this tree (REV first), so that both share the
 machine's load; on a shared machine compare CPU seconds, not wall seconds. The real-time
-factor is log seconds / CPU seconds. Prints one markdown row per run.
+factor is log seconds / CPU seconds. Prints one markdown row per run. ``--profile`` runs each
+child under cProfile with the process-time clock (the profiler inflates Python-heavy parts:
+read the shares; the table's CPU then includes it) and prints, after the table, where the CPU
+went (:func:`split`).
 """
 
 from __future__ import annotations
 
 import argparse
+import cProfile
 import json
 import os
 import subprocess
@@ -36,7 +40,45 @@ FILES = {
 SCAN = {"odometry": "both", "keyframes": "motion", "loop_closures": "on"}
 
 
-def child(log: str, backends: list[str], max_scans: int | None) -> dict:
+def split(stats) -> dict:
+    """Where the CPU of a profiled run went (s, cumulative): the loop-closure search, of it
+    the matches and the local-map builds; the scan odometry; the front end without it; the
+    SLAM step without the loop search, of it the backend's commit (iSAM2 update); the rest."""
+
+    def cum(where: str, name: str, caller: tuple[str, str] | None = None) -> float:
+        tot = 0.0
+        for (f, _, n), (_, _, _, ct, callers) in stats.stats.items():
+            if n != name or not f.endswith(where):
+                continue
+            if caller is None:
+                tot += ct
+            else:
+                tot += sum(
+                    v[3]
+                    for (cf, _, cn), v in callers.items()
+                    if cf.endswith(caller[0]) and cn in caller[1:]
+                )
+        return tot
+
+    loops = "fgslam/slam/loops.py"
+    out = {
+        "total": cum("fgslam/slam/runner.py", "run_backends"),
+        "loop_search": cum(loops, "try_close"),
+        "loop_matches": cum("fgslam/scanmatch.py", "match", (loops, "verify")),
+        "loop_map_builds": cum("fgslam/scanmatch.py", "build", (loops, "verify", "reference")),
+        "scan_odometry": cum("fgslam/slam/runner.py", "_select"),
+        "front_end": cum("fgslam/frontend/pipeline.py", "process_scan"),
+        "step": cum("fgslam/slam/step.py", "keyframe"),
+        "commit": cum("fgslam/slam/graph.py", "commit", ("fgslam/slam/step.py", "keyframe")),
+    }
+    out["front_end"] -= out["scan_odometry"]
+    out["step"] -= out["loop_search"]
+    out["rest"] = out["total"] - sum(out[k] for k in ("loop_search", "scan_odometry"))
+    out["rest"] -= out["front_end"] + out["step"]
+    return out
+
+
+def child(log: str, backends: list[str], max_scans: int | None, profile: bool = False) -> dict:
     """One run in this process (the fgslam on ``sys.path``): its measurements."""
     import fgslam
     from fgslam.config import with_scanmatch
@@ -68,10 +110,20 @@ def child(log: str, backends: list[str], max_scans: int | None) -> dict:
 
     reader = open_log(DATA / FILES[log])
     cfg = with_scanmatch(reader.config, SCAN)
+    prof = cProfile.Profile(time.process_time) if profile else None
     c0, w0 = time.process_time(), time.perf_counter()
+    if prof is not None:
+        prof.enable()
     results = run_backends(limited(reader), cfg, backends, "laser")
+    if prof is not None:
+        prof.disable()
     cpu, wall = time.process_time() - c0, time.perf_counter() - w0
     res = results[0]
+    where = {}
+    if prof is not None:
+        import pstats
+
+        where = split(pstats.Stats(prof))
     return {
         "tree": str(Path(fgslam.__file__).resolve().parents[1]),
         "log": log,
@@ -83,15 +135,23 @@ def child(log: str, backends: list[str], max_scans: int | None) -> dict:
         "attempts": int(res.stats.get("loop_closures_tried", 0)),
         "accepted": sum(bool(c["accepted"]) for c in res.loop_closures),
         "keyframes": len(res.times),
+        "maps_built": int(
+            res.stats.get("loop_maps_built", res.stats.get("loop_closures_tried", 0))
+        ),
+        "profile": where,
     }
 
 
-def run_child(tree: Path, log: str, backends: list[str], max_scans: int | None) -> dict:
+def run_child(
+    tree: Path, log: str, backends: list[str], max_scans: int | None, profile: bool = False
+) -> dict:
     env = dict(os.environ, PYTHONPATH=str(tree))
     cmd = [sys.executable, str(Path(__file__).resolve()), "--child", "--logs", log]
     cmd += ["--backends", *backends]
     if max_scans is not None:
         cmd += ["--max-scans", str(max_scans)]
+    if profile:
+        cmd.append("--profile")
     out = subprocess.run(cmd, env=env, check=True, capture_output=True, text=True).stdout
     return json.loads(out.strip().splitlines()[-1])
 
@@ -117,6 +177,38 @@ def row(label: str, r: dict) -> str:
     )
 
 
+PROFILE_ROWS = [
+    ("total", "total"),
+    ("loop_search", "loop-closure search"),
+    ("loop_matches", "- of it the matches"),
+    ("loop_map_builds", "- of it the local-map builds"),
+    ("loop_rest", "- the rest (marginals, poses, candidates, view checks)"),
+    ("scan_odometry", "scan odometry (a match per scan, a reference per keyframe)"),
+    ("front_end", "front end (features of the keyframes)"),
+    ("step", "SLAM step without the loop search"),
+    ("commit", "- of it the backend's commit (iSAM2 update)"),
+    ("rest", "reading the log, the rest"),
+]
+
+
+def print_profiles(profiles: list[tuple[str, dict]]) -> None:
+    """One column per profiled run: CPU seconds under the profiler."""
+    print()
+    heads = [f"{r['log']} {label}" for label, r in profiles]
+    print("| CPU under the profiler (s) | " + " | ".join(heads) + " |")
+    print("|---|" + "---|" * len(heads))
+    for key, name in PROFILE_ROWS:
+        cells = []
+        for _, r in profiles:
+            p = dict(r["profile"])
+            p["loop_rest"] = p["loop_search"] - p["loop_matches"] - p["loop_map_builds"]
+            cell = f"{p[key]:.1f}"
+            if key == "loop_search":
+                cell += f" ({r['attempts']} matches, {r['maps_built']} local maps built)"
+            cells.append(cell)
+        print(f"| {name} | " + " | ".join(cells) + " |")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--logs", nargs="+", default=["mit-csail", "freiburg-079"], choices=FILES)
@@ -124,10 +216,11 @@ def main() -> None:
     ap.add_argument("--max-scans", type=int, default=None)
     ap.add_argument("--compare", metavar="REV", help="also run this git revision, alternately")
     ap.add_argument("--repeat", type=int, default=1, help="runs of each tree per log")
+    ap.add_argument("--profile", action="store_true", help="where the CPU goes (cProfile)")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
-        print(json.dumps(child(args.logs[0], args.backends, args.max_scans)))
+        print(json.dumps(child(args.logs[0], args.backends, args.max_scans, args.profile)))
         return
     trees = [(revision(ROOT), ROOT)]
     with tempfile.TemporaryDirectory(prefix="bench_real_speed_") as tmp:
@@ -145,11 +238,15 @@ def main() -> None:
                 "loop search CPU (s) | loop attempts | accepted | keyframes |"
             )
             print("|---|---|---|---|---|---|---|---|---|---|---|")
+            profiles = []
             for log in args.logs:
                 for _ in range(args.repeat):
                     for label, tree in trees:
-                        r = run_child(tree, log, args.backends, args.max_scans)
+                        r = run_child(tree, log, args.backends, args.max_scans, args.profile)
                         print(row(label, r), flush=True)
+                        profiles.append((label, r))
+            if args.profile:
+                print_profiles(profiles)
         finally:
             if args.compare:
                 subprocess.run(
