@@ -80,9 +80,10 @@ def split(stats) -> dict:
 
 def child(log: str, backends: list[str], max_scans: int | None, profile: bool = False) -> dict:
     """One run in this process (the fgslam on ``sys.path``): its measurements."""
+    from real_carmen import limited  # the same scan limit as the other real-log experiments
+
     import fgslam
     from fgslam.config import with_scanmatch
-    from fgslam.events import LaserScan
     from fgslam.readers import open_log
     from fgslam.slam import loops
     from fgslam.slam.runner import run_backends
@@ -99,22 +100,13 @@ def child(log: str, backends: list[str], max_scans: int | None, profile: bool = 
 
     loops.LoopCloser.try_close = timed
 
-    def limited(events):
-        n = 0
-        for ev in events:
-            if isinstance(ev, LaserScan):
-                n += 1
-                if max_scans is not None and n > max_scans:
-                    return
-            yield ev
-
     reader = open_log(DATA / FILES[log])
     cfg = with_scanmatch(reader.config, SCAN)
     prof = cProfile.Profile(time.process_time) if profile else None
     c0, w0 = time.process_time(), time.perf_counter()
     if prof is not None:
         prof.enable()
-    results = run_backends(limited(reader), cfg, backends, "laser")
+    results = run_backends(limited(reader, max_scans), cfg, backends, "laser")
     if prof is not None:
         prof.disable()
     cpu, wall = time.process_time() - c0, time.perf_counter() - w0
