@@ -146,3 +146,63 @@ def test_pose_helpers_agree_with_gtsam():
         p = rng.normal(size=(4, 2))
         want = np.array([A.transformFrom(q) for q in p])
         assert np.allclose(transform_points(a[i], p), want, atol=1e-12)
+
+
+def test_the_ekf_predicts_with_the_scan_alone_where_the_two_disagree():
+    """The filter's rule (link_motions inside EkfBackend.predict): agreeing wheels and scan
+    are fused; disagreeing ones leave the prediction to the scan match, counted."""
+    from fgslam.slam.ekf import EkfBackend
+
+    C = np.diag([0.01, 0.01, 0.005]) ** 2
+    wheels = relative_pose([0.5, 0.0, 0.0], C)
+    for scan, expect, counted in (
+        (relative_pose([0.505, 0.0, 0.002], C), None, 0),
+        (relative_pose([0.8, 0.0, 0.3], C), [0.8, 0.0, 0.3], 1),
+    ):
+        be = EkfBackend()
+        be.start(0.0, np.zeros(3), np.zeros((3, 3)))
+        be.predict(1.0, wheels, scan)
+        want = expect or [
+            (f := fuse_motions(wheels, scan)).delta.x(),
+            f.delta.y(),
+            f.delta.theta(),
+        ]
+        assert np.allclose(be.x[:3], want, atol=1e-9)
+        assert be.stats["motion_disagreements"] == counted
+
+
+def test_the_graph_keeps_both_and_the_landmarks_decide():
+    """A wrong scan match (a person walking ahead, a bare corridor: 0.4 m short, with a
+    confident covariance) against right wheels, with two point landmarks seen from every
+    keyframe: the graph keeps both as robust factors and ends near the truth, where the
+    EKF, which must commit to the scan match, ends 0.4 m off."""
+    from fgslam.frontend.features import Feature
+    from fgslam.slam.ekf import EkfBackend
+
+    truth = [np.array([0.5 * k, 0.0, 0.0]) for k in range(6)]
+    marks = {1: np.array([1.5, 2.0]), 2: np.array([1.0, -2.0])}
+    Cw = np.diag([0.01, 0.005, 0.005]) ** 2
+    Cs = np.diag([0.01, 0.005, 0.003]) ** 2
+    R = np.diag([0.01, 0.02]) ** 2  # (bearing rad, range m)
+
+    def point(pose, lm) -> Feature:
+        d = lm - pose[:2]
+        z = np.array([np.arctan2(d[1], d[0]) - pose[2], np.hypot(*d)])
+        return Feature("point", z, R, "laser")
+
+    final = {}
+    for be in (GraphBackend(), EkfBackend()):
+        be.start(0.0, truth[0], np.eye(3) * 1e-8)
+        for lid, lm in marks.items():
+            be.add_landmark(lid, point(truth[0], lm))
+        be.commit()
+        for k in range(1, 6):
+            wheels = relative_pose([0.5, 0.0, 0.0], Cw)
+            step = 0.1 if k == 3 else 0.5  # one wrong scan match
+            be.predict(float(k), wheels, relative_pose([step, 0.0, 0.0], Cs))
+            for lid, lm in marks.items():
+                be.observe(lid, point(truth[k], lm))
+            be.commit()
+        final[be.name] = be.pose()
+    assert np.linalg.norm(final["isam2"][:2] - truth[-1][:2]) < 0.05, final
+    assert np.linalg.norm(final["ekf"][:2] - truth[-1][:2]) > 0.1, final

@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 from scipy.stats import chi2
 
 from factors.geometry import wrap_angle
-from factors.odometry import Preintegrated, fuse_motions
+from factors.odometry import Preintegrated, fuse_motions, link_motions
 from fgslam.frontend.features import Feature
 from fgslam.slam import models
 from fgslam.slam.backend import Backend, Estimate
@@ -33,10 +33,11 @@ class EkfBackend(Backend):
     name = "ekf"
     supports_loops = False  # a filter keeps no past pose to close a loop on
 
-    def __init__(self, gate_p: float | None = 0.9999) -> None:
+    def __init__(self, gate_p: float | None = 0.9999, motion_gate_p: float = 0.999) -> None:
         super().__init__()
         # None: no gate (the association is given and trusted, e.g. Victoria Park's file)
         self.gate = {n: float(chi2.ppf(gate_p, n)) if gate_p else math.inf for n in (1, 2, 3)}
+        self.motion_gate = float(chi2.ppf(motion_gate_p, 3))
         self.stats: Counter = Counter()
         self.x = np.zeros(3)
         self.P = np.zeros((3, 3))
@@ -51,14 +52,21 @@ class EkfBackend(Backend):
         self, t: float, pre: Preintegrated | None, scan: Preintegrated | None = None
     ) -> None:
         """Predict with the wheel odometry ``pre`` and/or the scan match ``scan``; with both,
-        their fusion (:func:`factors.odometry.fuse_motions`; the caller decides whether both
-        belong to the link, :func:`factors.odometry.link_motions`)."""
+        their fusion, or the scan match alone where the two disagree beyond
+        ``motion_gate_p`` (:func:`factors.odometry.link_motions`, counted as
+        ``motion_disagreements``): a filter must commit to one motion where the graph keeps
+        both as robust factors and lets the landmarks and loops decide."""
         if pre is None or scan is None:
             pre = pre or scan
             if pre is None:
                 raise ValueError("predict needs the wheel odometry, a scan match or both")
         else:
-            pre = fuse_motions(pre, scan)
+            wheels, scan = link_motions(pre, scan, self.motion_gate)
+            if wheels is None:
+                self.stats["motion_disagreements"] += 1
+                pre = scan
+            else:
+                pre = fuse_motions(wheels, scan)
         x, y, th = self.x[:3]
         dx, dy, dth = pre.delta.x(), pre.delta.y(), pre.delta.theta()
         c, s = math.cos(th), math.sin(th)

@@ -54,9 +54,9 @@ class KeyframeParams:
     0.5, each a wheels-only link up to 14 deg off; at 0.2 / 0.1, 3 %, with 23 instead of 18
     of 909 accepted pairs more than 10 cm or 2 deg from GMapping's poses: experiments/
     README.md), and the ambiguity test still guards the corridors; ``motion_gate_p``: with
-    ``odometry`` "both", a link whose wheel odometry and scan match disagree at this
-    chi-square level (3 dof) keeps the scan match alone
-    (:func:`factors.odometry.link_motions`)."""
+    ``odometry`` "both", the EKF predicts with the scan match alone where it and the wheel
+    odometry disagree at this chi-square level (3 dof; :func:`factors.odometry.link_motions`;
+    the graph keeps both as robust factors)."""
 
     policy: str = "motion"
     odometry: str = "both"

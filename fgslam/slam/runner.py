@@ -28,7 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from factors.geometry import compose_poses
-from factors.odometry import integrate_poses, link_motions, preintegrate
+from factors.odometry import integrate_poses, preintegrate
 from fgslam.config import RobotConfig, match_params
 from fgslam.config import keyframe_params as config_keyframe_params
 from fgslam.config import loop_params as config_loop_params
@@ -51,9 +51,11 @@ BACKENDS = ("ekf", "isam2", "batch")
 SENSORS = ("fused", "laser", "sonar")
 
 
-def make_backend(name: str) -> Backend:
+def make_backend(name: str, motion_gate_p: float = 0.999) -> Backend:
+    """A backend by name; ``motion_gate_p``: the EKF's gate between wheel odometry and a scan
+    match of one link (:meth:`EkfBackend.predict`)."""
     if name == "ekf":
-        return EkfBackend()
+        return EkfBackend(motion_gate_p=motion_gate_p)
     if name in ("isam2", "batch"):  # batch: the iSAM2 graph, solved by LM at the end
         return GraphBackend()
     raise ValueError(f"unknown backend {name!r}; expected one of {BACKENDS}")
@@ -106,9 +108,13 @@ class _Session(SlamStep):
     (``failed``: keyframe, time and the backend's message)."""
 
     def __init__(
-        self, backend: str, map_params: MapParams | None, loops: LoopCloser | None = None
+        self,
+        backend: str,
+        map_params: MapParams | None,
+        loops: LoopCloser | None = None,
+        motion_gate_p: float = 0.999,
     ) -> None:
-        super().__init__(make_backend(backend), map_params, loops)
+        super().__init__(make_backend(backend, motion_gate_p), map_params, loops)
         self.failed: dict | None = None
 
     @property
@@ -214,7 +220,7 @@ class SlamPipeline:
         self._between: list[tuple[float, int, NDArray[np.float64]]] = []  # non-keyframes
         for b in backends:
             if b == "ekf":
-                self.sessions[b] = _Session("ekf", map_params)
+                self.sessions[b] = _Session("ekf", map_params, None, kp.motion_gate_p)
             elif b in ("isam2", "batch") and "graph" not in self.sessions:
                 loop = LoopCloser(lp, mp, origin, cfg.laser.sigma_time) if lp.enabled else None
                 self.sessions["graph"] = _Session("isam2", map_params, loop)
@@ -329,10 +335,6 @@ class SlamPipeline:
         wheels = pre
         if scan is not None and self.keyframe_params.odometry == "scan":
             wheels = None  # the scan match alone (wheels only where it was rejected)
-        elif scan is not None and not first:
-            wheels, scan = link_motions(pre, scan, self.keyframe_params.motion_gate)
-            if wheels is None:
-                self.stats["keyframes_wheels_disagree"] += 1
         for sess in self.sessions.values():
             sess.feed(sf, wheels, self._odo_pose if first else None, scan, speed)
         self.stats.update({f"frontend_{k}": v for k, v in sf.stats.items()})
