@@ -202,8 +202,10 @@ class ScanMatchConfig:
       covariance gets on top of its residual-based part (surfaces the two scans sample at
       other places, clutter that is not a line); negative: derived from the laser (half a
       grid cell, one beam; measured on the benchmark's relations, experiments/README.md);
-    - ``motion_gate_p``: with ``odometry`` both, a link whose wheel odometry and scan match
-      disagree at this chi-square level keeps the scan match alone (wheels slip and freeze).
+    - ``motion_gate_p``: with ``odometry`` both, where the scan match and the wheel
+      odometry disagree at this chi-square level the EKF predicts with the scan match alone
+      (wheels slip) and the factor graph keeps the two as one max-mixture factor (the rest
+      of the graph decides which is right).
     """
 
     odometry: str = "both"

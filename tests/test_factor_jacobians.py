@@ -235,7 +235,7 @@ def test_max_mixture_between_jacobians_and_choice(rng):
         a = gtsam.Pose2(*random_pose(rng))
         d = np.array([rng.uniform(0.1, 1.0), rng.uniform(-0.2, 0.2), rng.uniform(-0.5, 0.5)])
         wheels = relative_pose(d + rng.normal(0, 0.01, 3), np.diag([0.02, 0.01, 0.01]) ** 2)
-        scan = relative_pose(d + [0.4, 0.0, 0.1], np.diag([0.01, 0.01, 0.005]) ** 2)
+        scan = relative_pose(d + np.array([0.4, 0.0, 0.1]), np.diag([0.01, 0.01, 0.005]) ** 2)
         f = max_mixture_between(1, 2, [wheels, scan])
         for near in (wheels, scan):
             v = gtsam.Values()
