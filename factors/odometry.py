@@ -464,52 +464,8 @@ def link_motions(
     scan match was the nearer to the reference poses in 3 of 3 (Intel) and 61 of 62
     (Freiburg 079); in the simulated corridor the wheels were right in every case (the
     matcher's tail along bare walls and behind people walking): experiments/README.md. The
-    EKF's rule only: the factor graph keeps both, as one max-mixture factor where they
-    disagree (:func:`max_mixture_between`), and the landmarks and loops decide (given to the
-    graph too, the rule took the corridor from 7 cm to 2.6 m)."""
+    EKF's rule only: the factor graph keeps both as robust factors, and the landmarks and
+    loops decide (given to the graph too, the rule took the corridor from 7 cm to 2.6 m)."""
     if motion_mahalanobis(wheels, scan) <= gate:
         return wheels, scan
     return None, scan
-
-
-def max_mixture_between(
-    key1: int,
-    key2: int,
-    motions: list[Preintegrated],
-    robust: gtsam.noiseModel.mEstimator.Base | None = None,
-) -> gtsam.CustomFactor:
-    """One factor for several measurements of the relative pose ``key1`` -> ``key2`` of
-    which one is right (a max-mixture, Olson & Agarwal 2012): at every linearisation the
-    component with the least cost, rho(|e_c|^2 in its own covariance) plus log det of it
-    (e_c = Logmap(z_c^-1 * x1^-1 * x2), GTSAM's between error; rho the M-estimator
-    ``robust``, or none), is the factor; its whitened error and Jacobians are returned
-    (unit noise, made robust with ``robust``). The rest of the graph decides which one it is.
-    Jacobians exact (checked numerically in tests)."""
-    comps = []
-    for m in motions:
-        C = 0.5 * (m.covariance + m.covariance.T)
-        R = np.linalg.cholesky(np.linalg.inv(C)).T  # R^T R = C^-1
-        comps.append((m.delta, R, float(np.linalg.slogdet(C)[1])))
-
-    def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
-        x1, x2 = values.atPose2(this.keys()[0]), values.atPose2(this.keys()[1])
-        H1, H2 = np.zeros((3, 3), order="F"), np.zeros((3, 3), order="F")
-        d = x1.between(x2, H1, H2)
-        best = None
-        for z, R, logdet in comps:
-            Hz, Hd, Hl = (np.zeros((3, 3), order="F") for _ in range(3))
-            e = gtsam.Pose2.Logmap(z.between(d, Hz, Hd), Hl)
-            w = R @ e
-            r = float(np.sqrt(w @ w))
-            cost = 2.0 * (robust.loss(r) if robust is not None else 0.5 * r * r) + logdet
-            if best is None or cost < best[0]:
-                best = (cost, w, R @ Hl @ Hd)
-        assert best is not None
-        if H is not None:
-            H[0] = best[2] @ H1
-            H[1] = best[2] @ H2
-        return best[1]
-
-    unit = gtsam.noiseModel.Unit.Create(3)
-    noise = unit if robust is None else gtsam.noiseModel.Robust.Create(robust, unit)
-    return gtsam.CustomFactor(noise, [key1, key2], error)

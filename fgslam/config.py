@@ -204,8 +204,8 @@ class ScanMatchConfig:
       grid cell, one beam; measured on the benchmark's relations, experiments/README.md);
     - ``motion_gate_p``: with ``odometry`` both, where the scan match and the wheel
       odometry disagree at this chi-square level the EKF predicts with the scan match alone
-      (wheels slip) and the factor graph keeps the two as one max-mixture factor (the rest
-      of the graph decides which is right).
+      (wheels slip); the factor graph keeps both as robust factors (the rest of the graph
+      decides).
     """
 
     odometry: str = "both"

@@ -221,32 +221,3 @@ def test_point_factor_matches_model(rng):
         f = point_factor(0, 1, z, np.eye(2), mount)
         np.testing.assert_allclose(f.unwhitenedError(values), 0.0, atol=1e-9)
         check_factor(point_factor(0, 1, z + rng.normal(0, 0.01, 2), np.eye(2), mount), values)
-
-
-# ---------------------------------------------------------------- wheels-or-scan mixture
-
-
-def test_max_mixture_between_jacobians_and_choice(rng):
-    """The max-mixture of two relative-pose measurements: Jacobians of the chosen component
-    against numerical ones, and the chosen one is the component nearer the poses."""
-    from factors.odometry import max_mixture_between, relative_pose
-
-    for _ in range(N_CONFIGS // 4):
-        a = gtsam.Pose2(*random_pose(rng))
-        d = np.array([rng.uniform(0.1, 1.0), rng.uniform(-0.2, 0.2), rng.uniform(-0.5, 0.5)])
-        wheels = relative_pose(d + rng.normal(0, 0.01, 3), np.diag([0.02, 0.01, 0.01]) ** 2)
-        scan = relative_pose(d + np.array([0.4, 0.0, 0.1]), np.diag([0.01, 0.01, 0.005]) ** 2)
-        f = max_mixture_between(1, 2, [wheels, scan])
-        for near in (wheels, scan):
-            v = gtsam.Values()
-            v.insert(1, a)
-            v.insert(2, a.compose(near.delta).retract(rng.normal(0, 1e-3, 3)))
-            # whitened by sigmas of 5-20 mm: entries ~100, compared relative to them
-            for A, N in zip(
-                factor_analytic_jacobians(f, v), factor_numeric_jacobians(f, v), strict=True
-            ):
-                np.testing.assert_allclose(A, N, atol=1e-5 * np.abs(N).max(), rtol=1e-5)
-            e = f.unwhitenedError(v)
-            R = np.linalg.cholesky(np.linalg.inv(near.covariance)).T
-            own = R @ gtsam.Pose2.Logmap(near.delta.between(a.between(v.atPose2(2))))
-            np.testing.assert_allclose(e, own, atol=1e-9)

@@ -20,19 +20,12 @@ from __future__ import annotations
 
 import math
 import time
-from collections import Counter
 
 import gtsam
 import numpy as np
 from numpy.typing import NDArray
-from scipy.stats import chi2
 
-from factors.odometry import (
-    Preintegrated,
-    fuse_motions,
-    max_mixture_between,
-    motion_mahalanobis,
-)
+from factors.odometry import Preintegrated, fuse_motions
 from fgslam.errors import UserError
 from fgslam.frontend.features import Feature
 from fgslam.slam import models
@@ -93,11 +86,8 @@ class GraphBackend(Backend):
         max_final_updates: int = 20,
         converge_tol: float = 0.01,
         loop_updates: int = 2,
-        motion_gate_p: float = 0.999,
     ) -> None:
         super().__init__()
-        self.motion_gate = float(chi2.ppf(motion_gate_p, 3))
-        self.stats: Counter = Counter()
         self.solution: GraphSolution | None = None  # after finish()
         self.covariances = covariances
         self.robust = robust
@@ -150,30 +140,17 @@ class GraphBackend(Backend):
     ) -> None:
         """A new pose linked to the last one by the wheel odometry ``pre`` and/or the scan
         match ``scan``: one between factor each; with both, each carries the robust kernel
-        (they check each other, the landmarks arbitrate); one alone is Gaussian. Where the
-        two disagree beyond ``motion_gate_p`` (one of them is wrong: wheels slip, a scan match
-        follows a person walking ahead), one robust max-mixture factor of the two instead
-        (:func:`factors.odometry.max_mixture_between`, counted as ``motion_disagreements``):
-        the landmarks, the neighbouring links and the loops decide which, at every
-        relinearisation."""
+        (they check each other, the landmarks arbitrate); one alone is Gaussian."""
         prev = self._prev = self.isam.calculateEstimatePose2(X(self.k))
         self.k += 1
         self.times.append(t)
         motions = [m for m in (pre, scan) if m is not None]
         if not motions:
             raise ValueError("predict needs the wheel odometry, a scan match or both")
-        if len(motions) > 1 and motion_mahalanobis(pre, scan) > self.motion_gate:
-            # one of them is wrong: whichever the rest of the graph agrees with
-            est = models.m_estimator(self.robust, 3)
-            self.new_graph.add(max_mixture_between(X(self.k - 1), X(self.k), motions, est))
-            self.stats["motion_disagreements"] += 1
-        else:
-            kernel = self.robust if len(motions) > 1 else "none"
-            for m in motions:
-                noise = models.noise_model(m.covariance, kernel)
-                self.new_graph.add(
-                    gtsam.BetweenFactorPose2(X(self.k - 1), X(self.k), m.delta, noise)
-                )
+        kernel = self.robust if len(motions) > 1 else "none"
+        for m in motions:
+            noise = models.noise_model(m.covariance, kernel)
+            self.new_graph.add(gtsam.BetweenFactorPose2(X(self.k - 1), X(self.k), m.delta, noise))
         self._pre = motions[0] if len(motions) == 1 else fuse_motions(pre, scan)
         pred = prev.compose(self._pre.delta)
         self.new_values.insert(X(self.k), pred)

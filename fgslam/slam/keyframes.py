@@ -55,8 +55,8 @@ class KeyframeParams:
     of 909 accepted pairs more than 10 cm or 2 deg from GMapping's poses: experiments/
     README.md), and the ambiguity test still guards the corridors; ``motion_gate_p``: with
     ``odometry`` "both", the EKF predicts with the scan match alone where it and the wheel
-    odometry disagree at this chi-square level (3 dof; :func:`factors.odometry.link_motions`);
-    the graph keeps both as one max-mixture factor there."""
+    odometry disagree at this chi-square level (3 dof; :func:`factors.odometry.link_motions`;
+    the graph keeps both as robust factors)."""
 
     policy: str = "motion"
     odometry: str = "both"

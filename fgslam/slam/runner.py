@@ -57,7 +57,7 @@ def make_backend(name: str, motion_gate_p: float = 0.999) -> Backend:
     if name == "ekf":
         return EkfBackend(motion_gate_p=motion_gate_p)
     if name in ("isam2", "batch"):  # batch: the iSAM2 graph, solved by LM at the end
-        return GraphBackend(motion_gate_p=motion_gate_p)
+        return GraphBackend()
     raise ValueError(f"unknown backend {name!r}; expected one of {BACKENDS}")
 
 
@@ -223,7 +223,7 @@ class SlamPipeline:
                 self.sessions[b] = _Session("ekf", map_params, None, kp.motion_gate_p)
             elif b in ("isam2", "batch") and "graph" not in self.sessions:
                 loop = LoopCloser(lp, mp, origin, cfg.laser.sigma_time) if lp.enabled else None
-                self.sessions["graph"] = _Session("isam2", map_params, loop, kp.motion_gate_p)
+                self.sessions["graph"] = _Session("isam2", map_params, loop)
         self.reorder = ReorderBuffer(reorder_window)
         self.frontend = FrontEnd(cfg, sensors, select=self._select)
         self._steps: deque = deque()  # the scan odometry's decisions, in scan order
