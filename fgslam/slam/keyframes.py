@@ -18,14 +18,12 @@ pose in the frame of the last keyframe.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 from collections import Counter, deque
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.stats import chi2
 
 from factors.geometry import between_poses, compose_poses, transform_points
 from factors.odometry import Preintegrated, relative_pose
@@ -80,11 +78,6 @@ class KeyframeParams:
             raise ValueError(f"motion_gate_p must lie in (0, 1), got {self.motion_gate_p!r}")
 
     @property
-    def motion_gate(self) -> float:
-        """The squared Mahalanobis bound of :attr:`motion_gate_p` (3 dof)."""
-        return _chi2_3(self.motion_gate_p)
-
-    @property
     def matching(self) -> bool:
         """Whether scans are matched at all."""
         return self.odometry != "wheels" or self.policy == "motion"
@@ -116,12 +109,6 @@ def timing_inflation(
     return time_registration_inflation(
         cov, (False, False, True), math.hypot(v0, v1), math.hypot(w0, w1), sigma_time
     )
-
-
-@functools.cache
-def _chi2_3(p: float) -> float:
-    """scipy's chi-square quantile ``p`` for 3 dof, remembered (0.3 ms a call)."""
-    return float(chi2.ppf(p, 3))
 
 
 def _key(reason: str) -> str:
