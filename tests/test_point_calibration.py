@@ -30,8 +30,7 @@ def park(true_scale, seed: int = 0, laps: int = 2, per_lap: int = 200) -> Victor
         [[r * math.cos(a), r * math.sin(a)] for r in (12, 24) for a in np.linspace(0, 6.28, 10)]
     )
     n = laps * per_lap
-    a = np.linspace(0, 2 * math.pi * laps, n + 1)
-    truth = np.column_stack([18 * np.cos(a), 18 * np.sin(a), a + math.pi / 2])
+    truth = park_truth(laps, per_lap)
     sig = np.sqrt(np.broadcast_to(np.asarray(true_scale, float), (3,)) * np.diag(STATED))
     data = VictoriaPark()
     for k in range(n + 1):
@@ -55,6 +54,12 @@ def park(true_scale, seed: int = 0, laps: int = 2, per_lap: int = 200) -> Victor
                 z = xy + 0.1 * rng.standard_normal(2)
                 data.sightings.setdefault(k, []).append(Sighting(k, 100 + j, z, np.eye(2) * 0.01))
     return data
+
+
+def park_truth(laps: int = 2, per_lap: int = 200) -> np.ndarray:
+    """The true poses of :func:`park` (world frame; the first is (18, 0, pi/2))."""
+    a = np.linspace(0, 2 * math.pi * laps, laps * per_lap + 1)
+    return np.column_stack([18 * np.cos(a), 18 * np.sin(a), a + math.pi / 2])
 
 
 def given(data: VictoriaPark) -> dict[tuple[int, int], int]:
