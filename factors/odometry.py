@@ -161,9 +161,17 @@ def motion_noise(lr: float, ll: float, params: OdometryParams) -> NDArray[np.flo
     return np.array([a3 * ds + a4 * dth, a5 * ds, a1 * dth + a2 * ds])
 
 
-def step_noise(th: float, lr: float, ll: float, params: OdometryParams) -> NDArray[np.float64]:
+def step_noise(
+    th: float, lr: float, ll: float, params: OdometryParams
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Covariance added by one sample from heading ``th`` (world axes): eq 4-5 and the motion
     error model. Returns (F, Q) with the step's pose Jacobian F: P <- F P F^T + Q."""
+    F, Q, _ = _step_noise(th, lr, ll, params)
+    return F, Q
+
+
+def _step_noise(th: float, lr: float, ll: float, params: OdometryParams) -> tuple:
+    """:func:`step_noise` and the step's Jacobian G w.r.t. [L_r, L_l, D]."""
     D = params.wheelbase
     F, G = step_jacobians(th, lr, ll, D)
     Qw = np.array((params.k_r**2 * lr * lr, params.k_l**2 * ll * ll, (params.k_d * D) ** 2))
@@ -171,7 +179,7 @@ def step_noise(th: float, lr: float, ll: float, params: OdometryParams) -> NDArr
     if params.has_motion_model:
         M = motion_jacobian(th, lr, ll, D)
         Q = Q + (M * motion_noise(lr, ll, params)) @ M.T
-    return F, Q
+    return F, Q, G
 
 
 def hole_noise(gap: float, params: OdometryParams) -> NDArray[np.float64]:
@@ -231,6 +239,23 @@ def propagate(
     ``times``, the interval's ``span`` (t0, t1) and the ``last_sample`` time before it,
     odometry holes (:func:`_gaps`) add :func:`hole_noise` where they lie. Returns the final
     (x, y, th) and its 3x3 covariance."""
+    pose, P, _ = propagate_calibrated(lr, ll, params, start, P0, times, span, last_sample)
+    return pose, P
+
+
+def propagate_calibrated(
+    lr: ArrayLike,
+    ll: ArrayLike,
+    params: OdometryParams,
+    start: ArrayLike = (0.0, 0.0, 0.0),
+    P0: ArrayLike | None = None,
+    times: ArrayLike | None = None,
+    span: tuple[float, float] | None = None,
+    last_sample: float | None = None,
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """:func:`propagate`, and the 3x3 Jacobian of the final (x, y, th) w.r.t. the
+    calibration errors c = (e_r, e_l, e_b) at c = 0: the relative errors of the right and
+    left wheel distances and of the wheelbase (true L_r = (1 + e_r) L_r, etc.)."""
     lr = np.atleast_1d(np.asarray(lr, dtype=float))
     ll = np.atleast_1d(np.asarray(ll, dtype=float))
     _check_distances(lr, ll)
@@ -240,11 +265,13 @@ def propagate(
         raise ValueError("initial covariance must be a finite 3x3 matrix")
     D = params.wheelbase
     gaps = _gaps(times, span, lr.size, params.hole_tolerance, last_sample)
+    Jc = np.zeros((3, 3))
     for i, (r, l) in enumerate(zip(lr.tolist(), ll.tolist(), strict=True)):
         if gaps[i]:
             P = P + hole_noise(gaps[i], params)
-        F, Q = step_noise(th, r, l, params)
+        F, Q, G = _step_noise(th, r, l, params)
         P = F @ P @ F.T + Q
+        Jc = F @ Jc + G * (r, l, D)  # d(step)/d(e_r, e_l, e_b) = d(step)/d(L_r, L_l, D) scaled
         ds = 0.5 * (r + l)
         dth = (r - l) / D
         a = th + 0.5 * dth
@@ -253,7 +280,7 @@ def propagate(
         th += dth
     if gaps[-1]:
         P = P + hole_noise(gaps[-1], params)
-    return np.array([x, y, th]), 0.5 * (P + P.T)
+    return np.array([x, y, th]), 0.5 * (P + P.T), Jc
 
 
 @dataclass(frozen=True)
@@ -270,6 +297,9 @@ class Preintegrated:
     covariance_start: NDArray[np.float64]
     n_samples: int
     hole_seconds: float = 0.0  # odometry holes in the interval (s), see OdometryParams
+    # wheel odometry: d(x, y, theta)/d(e_r, e_l, e_b) in keyframe 1's axes at zero calibration
+    # error (:func:`propagate_calibrated`); None for a motion not measured by the wheels
+    calibration_jacobian: NDArray[np.float64] | None = None
 
     def factor(self, key1: int, key2: int) -> gtsam.BetweenFactorPose2:
         """The between factor for keys ``key1`` -> ``key2``."""
@@ -311,11 +341,18 @@ def preintegrate(
     hole = float(gaps.sum())
     if lr.size == 0:
         P = np.eye(3) * COVARIANCE_FLOOR + (hole_noise(hole, params) if hole else 0.0)
-        return Preintegrated(gtsam.Pose2(), P, P, 0, hole)
-    (x, y, th), P = propagate(lr, ll, params, times=times, span=span, last_sample=last_sample)
+        return Preintegrated(gtsam.Pose2(), P, P, 0, hole, np.zeros((3, 3)))
+    (x, y, th), P, Jc = propagate_calibrated(
+        lr, ll, params, times=times, span=span, last_sample=last_sample
+    )
     P = P + np.eye(3) * COVARIANCE_FLOOR
     return Preintegrated(
-        gtsam.Pose2(x, y, wrap_angle(th)), to_between_covariance(P, th), P, int(lr.size), hole
+        gtsam.Pose2(x, y, wrap_angle(th)),
+        to_between_covariance(P, th),
+        P,
+        int(lr.size),
+        hole,
+        Jc,
     )
 
 
@@ -416,6 +453,55 @@ class OdometryIntegrator:
         self._P = np.zeros((3, 3))
         self._n = 0
         return out
+
+
+def calibrated_delta(pre: Preintegrated, c: ArrayLike) -> NDArray[np.float64]:
+    """The wheel motion ``pre`` (x, y, theta in keyframe 1's frame) under calibration errors
+    ``c`` = (e_r, e_l, e_b), to first order: delta + J_c c."""
+    d = np.array([pre.delta.x(), pre.delta.y(), pre.delta.theta()])
+    if pre.calibration_jacobian is None:
+        raise ValueError("this motion has no calibration Jacobian (not wheel odometry)")
+    return d + pre.calibration_jacobian @ np.asarray(c, dtype=float)
+
+
+def calibrated_error(
+    pose_i: ArrayLike, pose_j: ArrayLike, c: ArrayLike, pre: Preintegrated
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Error of the wheel motion ``pre`` between world poses i and j under calibration
+    errors ``c``: pose j in pose i's frame minus :func:`calibrated_delta`, as (x, y, theta)
+    in keyframe i's axes (the heading wrapped); its covariance is ``pre.covariance_start``.
+    Returns the error and its Jacobians w.r.t. GTSAM's body tangents of poses i and j (3x3
+    each) and w.r.t. c (3x3)."""
+    xi, yi, ti = (float(v) for v in pose_i)
+    xj, yj, tj = (float(v) for v in pose_j)
+    co, si = math.cos(ti), math.sin(ti)
+    dx, dy = xj - xi, yj - yi
+    qx, qy = co * dx + si * dy, -si * dx + co * dy
+    m = calibrated_delta(pre, c)
+    e = np.array([qx - m[0], qy - m[1], wrap_angle(tj - ti - m[2])])
+    Hi = np.array([[-1.0, 0.0, qy], [0.0, -1.0, -qx], [0.0, 0.0, -1.0]])
+    cd, sd = math.cos(tj - ti), math.sin(tj - ti)
+    Hj = np.array([[cd, -sd, 0.0], [sd, cd, 0.0], [0.0, 0.0, 1.0]])
+    return e, Hi, Hj, -pre.calibration_jacobian
+
+
+def calibrated_odometry_factor(
+    key_i: int, key_j: int, key_c: int, pre: Preintegrated, noise: gtsam.noiseModel.Base
+) -> gtsam.CustomFactor:
+    """A factor between poses i, j (``Pose2``) and the wheel calibration errors (``Vector3``
+    (e_r, e_l, e_b)) for the wheel motion ``pre``: :func:`calibrated_error`, with a noise
+    model of ``pre.covariance_start`` (keyframe i's axes)."""
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
+        a, b = values.atPose2(key_i), values.atPose2(key_j)
+        e, Hi, Hj, Hc = calibrated_error(
+            (a.x(), a.y(), a.theta()), (b.x(), b.y(), b.theta()), values.atVector(key_c), pre
+        )
+        if H is not None:
+            H[0], H[1], H[2] = Hi, Hj, Hc
+        return e
+
+    return gtsam.CustomFactor(noise, [key_i, key_j, key_c], error)
 
 
 def relative_pose(delta: ArrayLike, covariance: ArrayLike) -> Preintegrated:

@@ -1,0 +1,112 @@
+"""Wheel calibration as estimated variables (issue 15, section 1): the preintegration's
+Jacobian w.r.t. the calibration errors (e_r, e_l, e_b), the calibrated odometry factor, and
+the estimate's recovery of a known bias."""
+
+from __future__ import annotations
+
+import math
+
+import gtsam
+import numpy as np
+import pytest
+from conftest import factor_analytic_jacobians, factor_numeric_jacobians, numeric_jacobian
+
+from factors.geometry import wrap_angle
+from factors.odometry import (
+    OdometryParams,
+    calibrated_delta,
+    calibrated_error,
+    calibrated_odometry_factor,
+    preintegrate,
+    propagate_calibrated,
+)
+
+PARAMS = OdometryParams(0.5, 0.01, 0.01, 0.005, alpha3=1e-4, alpha5=1e-5)
+
+
+def random_samples(rng, n: int = 40) -> tuple[np.ndarray, np.ndarray]:
+    """Wheel distances of an arc with a changing turn rate (m per sample)."""
+    v = rng.uniform(-0.02, 0.05)
+    w = rng.uniform(-0.1, 0.1, n).cumsum() * 0.1
+    return v + 0.25 * w * 0.5, v - 0.25 * w * 0.5
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_preintegration_calibration_jacobian_matches_finite_differences(seed):
+    """d(x, y, theta)/d(e_r, e_l, e_b): integrating with the wheel distances and the
+    wheelbase scaled by (1 + e) moves the end pose by the Jacobian times e."""
+    rng = np.random.default_rng(seed)
+    lr, ll = random_samples(rng)
+
+    def end(c):
+        p = OdometryParams(PARAMS.wheelbase * (1 + c[2]), PARAMS.k_r, PARAMS.k_l, PARAMS.k_d)
+        return propagate_calibrated(lr * (1 + c[0]), ll * (1 + c[1]), p)[0]
+
+    _, _, Jc = propagate_calibrated(lr, ll, PARAMS)
+    np.testing.assert_allclose(Jc, numeric_jacobian(end, np.zeros(3)), atol=1e-7, rtol=1e-5)
+    pre = preintegrate(lr, ll, PARAMS)
+    np.testing.assert_allclose(pre.calibration_jacobian, Jc)
+    c = rng.normal(0, 0.01, 3)  # first order: the error of the prediction is O(|c|^2)
+    moved = end(c)
+    assert np.abs(calibrated_delta(pre, c) - moved).max() < 50 * np.abs(c).max() ** 2
+
+
+def test_calibration_jacobian_of_a_straight_line_and_a_turn_on_the_spot():
+    """Closed forms: driving straight L metres, x grows by L (e_r + e_l) / 2 and the heading
+    by L (e_r - e_l) / D; turning on the spot by phi, the heading grows by
+    phi (e_r + e_l) / 2 - phi e_b, and a scale difference drives it along its heading
+    (x, y depend on e_r - e_l only)."""
+    n, step = 100, 0.01
+    _, _, J = propagate_calibrated(np.full(n, step), np.full(n, step), PARAMS)
+    L, D = n * step, PARAMS.wheelbase
+    np.testing.assert_allclose(J[0], [L / 2, L / 2, 0.0], atol=1e-12)
+    np.testing.assert_allclose(J[2], [L / D, -L / D, 0.0], atol=1e-12)
+    _, _, J = propagate_calibrated(np.full(n, step), np.full(n, -step), PARAMS)
+    phi = 2 * L / D
+    np.testing.assert_allclose(J[2], [phi / 2, phi / 2, -phi], atol=1e-12)
+    np.testing.assert_allclose(J[:2, 2], 0.0, atol=1e-12)
+    np.testing.assert_allclose(J[:2, 0], -J[:2, 1], atol=1e-12)
+    assert np.abs(J[:2, 0]).max() > 0.05
+
+
+@pytest.mark.parametrize("seed", range(30))
+def test_calibrated_error_jacobians(seed):
+    """The error's Jacobians w.r.t. both poses' body tangents and the calibration errors,
+    directly and through the GTSAM factor (whitening undone)."""
+    rng = np.random.default_rng(100 + seed)
+    pre = preintegrate(*random_samples(rng), PARAMS)
+    pi = np.array([rng.uniform(-9, 9), rng.uniform(-9, 9), rng.uniform(-math.pi, math.pi)])
+    rel = np.array([pre.delta.x(), pre.delta.y(), pre.delta.theta()]) + rng.normal(0, 0.05, 3)
+    pj = gtsam.Pose2(*pi).compose(gtsam.Pose2(*rel))
+    pj = np.array([pj.x(), pj.y(), pj.theta()])
+    c = rng.normal(0, 0.01, 3)
+    e, Hi, Hj, Hc = calibrated_error(pi, pj, c, pre)
+    # the error is pose j in pose i's frame minus the calibrated motion
+    q = gtsam.Pose2(*pi).between(gtsam.Pose2(*pj))
+    want = np.array([q.x(), q.y(), q.theta()]) - calibrated_delta(pre, c)
+    want[2] = wrap_angle(want[2])
+    np.testing.assert_allclose(e, want, atol=1e-12)
+
+    def at(which, xi):
+        poses = [gtsam.Pose2(*pi), gtsam.Pose2(*pj)]
+        poses[which] = poses[which].retract(xi)
+        a, b = ([p.x(), p.y(), p.theta()] for p in poses)
+        return calibrated_error(a, b, c, pre)[0]
+
+    np.testing.assert_allclose(Hi, numeric_jacobian(lambda x: at(0, x), np.zeros(3)), atol=1e-6)
+    np.testing.assert_allclose(Hj, numeric_jacobian(lambda x: at(1, x), np.zeros(3)), atol=1e-6)
+    Hc_num = numeric_jacobian(lambda x: calibrated_error(pi, pj, x, pre)[0], c)
+    np.testing.assert_allclose(Hc, Hc_num, atol=1e-6)
+    keys = gtsam.symbol("x", 0), gtsam.symbol("x", 1), gtsam.symbol("c", 0)
+    f = calibrated_odometry_factor(
+        *keys, pre, gtsam.noiseModel.Gaussian.Covariance(pre.covariance_start)
+    )
+    values = gtsam.Values()
+    values.insert(keys[0], gtsam.Pose2(*pi))
+    values.insert(keys[1], gtsam.Pose2(*pj))
+    values.insert(keys[2], c)
+    np.testing.assert_allclose(f.unwhitenedError(values), e, atol=1e-12)
+    for A, N in zip(
+        factor_analytic_jacobians(f, values), factor_numeric_jacobians(f, values), strict=True
+    ):
+        np.testing.assert_allclose(A, N, atol=1e-5, rtol=1e-5)
