@@ -11,6 +11,7 @@ covariance of a ``gtsam.BetweenFactorPose2`` (tangent space at the end of the mo
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -462,6 +463,18 @@ def calibrated_delta(pre: Preintegrated, c: ArrayLike) -> NDArray[np.float64]:
     if pre.calibration_jacobian is None:
         raise ValueError("this motion has no calibration Jacobian (not wheel odometry)")
     return d + pre.calibration_jacobian @ np.asarray(c, dtype=float)
+
+
+def with_calibration(pre: Preintegrated, c: ArrayLike) -> Preintegrated:
+    """``pre`` with its motion corrected for calibration errors ``c``
+    (:func:`calibrated_delta`), the same covariances and Jacobian."""
+    x, y, th = calibrated_delta(pre, c)
+    th = wrap_angle(th)
+    return dataclasses.replace(
+        pre,
+        delta=gtsam.Pose2(x, y, th),
+        covariance=to_between_covariance(pre.covariance_start, th),
+    )
 
 
 def calibrated_error(

@@ -62,6 +62,21 @@ class OdometryConfig:
     hole_tolerance: float = 0.0  # s without odometry samples that make a hole; 0: off
     hole_speed: float = 1.0  # m/s the robot may have moved at in a hole
     hole_turn_rate: float = 1.0  # rad/s it may have turned at
+    # "wheels": the wheel calibration errors (e_r, e_l, e_b: relative errors of the right and
+    # left wheel distances and of the wheelbase) are estimated (a graph variable; EKF states);
+    # "off": the nominal radii and wheelbase are taken as exact
+    calibration: str = "off"
+    # prior standard deviations of (e_r, e_l, e_b): how far the nominal values may be off
+    # (tyre wear and load change a radius by about 1 %, the contact patch the wheelbase)
+    calibration_sigma: tuple[float, ...] = (0.01, 0.01, 0.01)
+
+    def calibration_prior(self) -> Any:
+        """The prior covariance (3x3) of the wheel calibration errors, or None when off."""
+        if self.calibration == "off":
+            return None
+        import numpy as np
+
+        return np.diag(np.square(self.calibration_sigma))
 
     def params(self) -> Any:
         """The :class:`factors.odometry.OdometryParams` of this configuration."""
@@ -450,7 +465,7 @@ def _convert(tp: Any, value: Any, path: str, src: str) -> Any:
         return _build(tp, value, path, src)
     if typing.get_origin(tp) is tuple:
         (item,) = typing.get_args(tp)[:1]
-        if not isinstance(value, list):
+        if not isinstance(value, list | tuple):  # tuple: from to_dict
             raise ConfigError(f"{where}: expected {_type_name(tp)}, got {type(value).__name__}")
         return tuple(_convert(item, v, path, src) for v in value)
     if tp is str:
@@ -511,6 +526,9 @@ def from_dict(data: dict[str, Any], source: str = "<dict>") -> RobotConfig:
     return dataclasses.replace(cfg, source=source)
 
 
+CALIBRATION_CHOICES = ("off", "wheels")
+
+
 def _check_consistency(cfg: RobotConfig, src: str) -> None:
     for key, choices in SCANMATCH_CHOICES.items():
         value = getattr(cfg.scanmatch, key)
@@ -520,6 +538,17 @@ def _check_consistency(cfg: RobotConfig, src: str) -> None:
             )
     if not 0.0 < cfg.scanmatch.motion_gate_p < 1.0:
         raise ConfigError(f"{src}: key 'scanmatch.motion_gate_p': expected a value in (0, 1)")
+    if cfg.odometry.calibration not in CALIBRATION_CHOICES:
+        raise ConfigError(
+            f"{src}: key 'odometry.calibration': expected one of "
+            f"{', '.join(CALIBRATION_CHOICES)}, got {cfg.odometry.calibration!r}"
+        )
+    sig = cfg.odometry.calibration_sigma
+    if len(sig) != 3 or not all(v > 0 for v in sig):
+        raise ConfigError(
+            f"{src}: key 'odometry.calibration_sigma': expected 3 positive numbers "
+            "(right wheel, left wheel, wheelbase; relative)"
+        )
     if cfg.laser.delay_max < cfg.laser.delay_min:
         raise ConfigError(f"{src}: key 'laser.delay_max': expected >= laser.delay_min")
     for arr in cfg.sonar.arrays:

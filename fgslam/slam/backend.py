@@ -68,6 +68,13 @@ class Backend(ABC):
     @abstractmethod
     def landmark_covariances(self) -> dict[int, NDArray[np.float64]]: ...
 
+    def calibration_estimate(
+        self,
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None] | None:
+        """The wheel calibration errors (e_r, e_l, e_b) and their covariance (None: not
+        known), or None when the backend does not estimate them."""
+        return None
+
     def keyframe_poses(self) -> NDArray[np.float64]:
         """Current estimates (x, y, theta) of the keyframes before the current one."""
         raise NotImplementedError(f"{self.name} does not close loops")

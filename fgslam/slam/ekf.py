@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 from scipy.stats import chi2
 
 from factors.geometry import wrap_angle
-from factors.odometry import Preintegrated, fuse_motions, link_motions
+from factors.odometry import Preintegrated, fuse_motions, link_motions, with_calibration
 from fgslam.frontend.features import Feature
 from fgslam.slam import models
 from fgslam.slam.backend import Backend, Estimate
@@ -28,13 +28,24 @@ class EkfBackend(Backend):
     """The paper's EKF. Protection matching the graph's robust factors: an innovation outside
     the chi-square gate ``gate_p`` (after the scan's earlier updates) is never applied
     (counted as ``ekf_rejected``); where R is tiny (the merge pseudo-measurement) the update
-    is in Joseph form, which keeps P positive semi-definite for any gain."""
+    is in Joseph form, which keeps P positive semi-definite for any gain.
+
+    ``calibration``: the prior covariance (3x3) of the wheel calibration errors (e_r, e_l,
+    e_b), then three states after the pose, predicted through the wheel odometry's
+    Jacobian w.r.t. them (a link fused with a scan match uses their estimate but does not
+    update them: the filter keeps no previous pose to relate the two by); None: off."""
 
     name = "ekf"
     supports_loops = False  # a filter keeps no past pose to close a loop on
 
-    def __init__(self, gate_p: float | None = 0.9999, motion_gate_p: float = 0.999) -> None:
+    def __init__(
+        self,
+        gate_p: float | None = 0.9999,
+        motion_gate_p: float = 0.999,
+        calibration: NDArray[np.float64] | None = None,
+    ) -> None:
         super().__init__()
+        self.calibration = None if calibration is None else np.array(calibration, dtype=float)
         # None: no gate (the association is given and trusted, e.g. Victoria Park's file)
         self.gate = {n: float(chi2.ppf(gate_p, n)) if gate_p else math.inf for n in (1, 2, 3)}
         self.motion_gate = float(chi2.ppf(motion_gate_p, 3))
@@ -46,6 +57,11 @@ class EkfBackend(Backend):
     def start(self, t: float, pose: NDArray[np.float64], cov: NDArray[np.float64]) -> None:
         self.x = np.array(pose, dtype=float)
         self.P = np.array(cov, dtype=float)
+        if self.calibration is not None:  # states 3:6, before any landmark
+            self.x = np.concatenate([self.x, np.zeros(3)])
+            P = np.zeros((6, 6))
+            P[:3, :3], P[3:, 3:] = self.P, self.calibration
+            self.P = P
         self._pending_t = t
 
     def predict(
@@ -56,6 +72,9 @@ class EkfBackend(Backend):
         ``motion_gate_p`` (:func:`factors.odometry.link_motions`, counted as
         ``motion_disagreements``): a filter must commit to one motion where the graph keeps
         both as robust factors and lets the landmarks and loops decide."""
+        if self.calibration is not None and pre is not None:
+            if pre.calibration_jacobian is not None:
+                pre = with_calibration(pre, self.x[3:6])
         if pre is None or scan is None:
             pre = pre or scan
             if pre is None:
@@ -75,8 +94,13 @@ class EkfBackend(Backend):
         G = np.eye(3)
         G[:2, :2] = [[c, -s], [s, c]]
         P = self.P
-        P[:3, :] = F @ P[:3, :]
-        P[:, :3] = P[:, :3] @ F.T
+        if self.calibration is not None and pre.calibration_jacobian is not None:
+            Gc = G @ pre.calibration_jacobian  # the pose moves with the calibration errors
+            P[:3, :] = F @ P[:3, :] + Gc @ P[3:6, :]
+            P[:, :3] = P[:, :3] @ F.T + P[:, 3:6] @ Gc.T
+        else:
+            P[:3, :] = F @ P[:3, :]
+            P[:, :3] = P[:, :3] @ F.T
         P[:3, :3] += G @ pre.covariance_start @ G.T
         self._pending_t = t
 
@@ -185,6 +209,14 @@ class EkfBackend(Backend):
 
     def _record(self, t: float) -> None:
         self.trajectory.append((t, self.x[:3].copy(), self.P[:3, :3].copy()))
+
+    def calibration_estimate(
+        self,
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None] | None:
+        """The wheel calibration errors (e_r, e_l, e_b) and their covariance, or None."""
+        if self.calibration is None:
+            return None
+        return self.x[3:6].copy(), self.P[3:6, 3:6].copy()
 
     def landmark_covariances(self) -> dict[int, NDArray[np.float64]]:
         return {

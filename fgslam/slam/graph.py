@@ -25,7 +25,12 @@ import gtsam
 import numpy as np
 from numpy.typing import NDArray
 
-from factors.odometry import Preintegrated, fuse_motions
+from factors.odometry import (
+    Preintegrated,
+    calibrated_odometry_factor,
+    fuse_motions,
+    with_calibration,
+)
 from fgslam.errors import UserError
 from fgslam.frontend.features import Feature
 from fgslam.slam import models
@@ -38,6 +43,10 @@ def X(k: int) -> int:
 
 def L(i: int) -> int:
     return gtsam.symbol("l", i)
+
+
+# the wheel calibration errors (e_r, e_l, e_b), one Vector3 for the whole run
+C = gtsam.symbol("c", 0)
 
 
 class BackendError(UserError):
@@ -71,6 +80,12 @@ class GraphBackend(Backend):
     :meth:`means` is a cache: refreshed in full every ``refresh_every`` keyframes, and for the
     landmarks each keyframe touched; association uses it only to pick candidates (a loose
     pre-gate), the gate itself the fresh :meth:`estimate`.
+
+    ``calibration``: the prior covariance (3x3) of the wheel calibration errors (e_r, e_l,
+    e_b) (relative errors of the right and left wheel distances and of the wheelbase), which
+    then become one variable ``C`` of the graph, in every wheel odometry factor
+    (:func:`factors.odometry.calibrated_odometry_factor`); None: the nominal calibration is
+    taken as exact. :meth:`calibration_estimate` reads it.
     """
 
     name = "isam2"
@@ -86,8 +101,12 @@ class GraphBackend(Backend):
         max_final_updates: int = 20,
         converge_tol: float = 0.01,
         loop_updates: int = 2,
+        calibration: NDArray[np.float64] | None = None,
     ) -> None:
         super().__init__()
+        self.calibration = None if calibration is None else np.array(calibration, dtype=float)
+        self._c = np.zeros(3)  # the calibration errors' current estimate
+        self._calibrated = False  # the last link's wheels carry the calibration
         self.solution: GraphSolution | None = None  # after finish()
         self.covariances = covariances
         self.robust = robust
@@ -132,6 +151,10 @@ class GraphBackend(Backend):
             gtsam.PriorFactorPose2(X(0), p, gtsam.noiseModel.Gaussian.Covariance(R.T @ cov @ R))
         )
         self.new_values.insert(X(0), p)
+        if self.calibration is not None:
+            self.new_values.insert(C, np.zeros(3))
+            prior = gtsam.noiseModel.Gaussian.Covariance(self.calibration)
+            self.new_graph.add(gtsam.PriorFactorVector(C, np.zeros(3), prior))
         self._pose_pred = np.array(pose, dtype=float)
         self._pending_t = t
 
@@ -148,10 +171,23 @@ class GraphBackend(Backend):
         if not motions:
             raise ValueError("predict needs the wheel odometry, a scan match or both")
         kernel = self.robust if len(motions) > 1 else "none"
+        self._calibrated = self.calibration is not None and (
+            pre is not None and pre.calibration_jacobian is not None
+        )
         for m in motions:
+            if m is pre and self._calibrated:
+                noise = models.noise_model(m.covariance_start, kernel)
+                f = calibrated_odometry_factor(X(self.k - 1), X(self.k), C, m, noise)
+                self.new_graph.add(f)
+                continue
             noise = models.noise_model(m.covariance, kernel)
             self.new_graph.add(gtsam.BetweenFactorPose2(X(self.k - 1), X(self.k), m.delta, noise))
-        self._pre = motions[0] if len(motions) == 1 else fuse_motions(pre, scan)
+        if self._calibrated:
+            pre = with_calibration(pre, self._c)
+        if pre is None or scan is None:
+            self._pre = pre or scan
+        else:
+            self._pre = fuse_motions(pre, scan)
         pred = prev.compose(self._pre.delta)
         self.new_values.insert(X(self.k), pred)
         self._pose_pred = np.array([pred.x(), pred.y(), pred.theta()])
@@ -223,11 +259,13 @@ class GraphBackend(Backend):
                 raise ValueError("no landmark exists before the first keyframe is committed")
             return {}, self._start_cov.copy()
         means = {lid: self._mean(lid, fresh=True) for lid in lids}
-        keys = [X(self.k - 1)] + [L(lid) for lid in lids]
+        # with calibration on a wheels-only link, its uncertainty enters the prediction
+        cal = self._calibrated and self._pre.calibration_jacobian is not None
+        keys = [X(self.k - 1)] + ([C] if cal else []) + [L(lid) for lid in lids]
         J = self.isam.jointMarginalCovariance(keys).fullMatrix()
         # tangent (body) -> world for Pose2 blocks
         prev = self._prev
-        blocks = [_rot_block(prev.theta())]
+        blocks = [_rot_block(prev.theta())] + ([np.eye(3)] if cal else [])
         for lid in lids:
             blocks.append(models.KINDS[self.kinds[lid]].tangent_to_world(means[lid]))
         T = _blockdiag(blocks)
@@ -239,8 +277,14 @@ class GraphBackend(Backend):
         dx, dy = pre.delta.x(), pre.delta.y()
         F = np.array([[1.0, 0.0, -s * dx - c * dy], [0.0, 1.0, c * dx - s * dy], [0.0, 0.0, 1.0]])
         G = _rot_block(th)
-        P[:3, :] = F @ P[:3, :]
-        P[:, :3] = P[:, :3] @ F.T
+        if cal:  # the pose also moves with the calibration errors: rows [F, G J_c]
+            Gc = G @ pre.calibration_jacobian
+            P[:3, :] = F @ P[:3, :] + Gc @ P[3:6, :]
+            P[:, :3] = P[:, :3] @ F.T + P[:, 3:6] @ Gc.T
+            P = np.delete(np.delete(P, np.s_[3:6], axis=0), np.s_[3:6], axis=1)
+        else:
+            P[:3, :] = F @ P[:3, :]
+            P[:, :3] = P[:, :3] @ F.T
         P[:3, :3] += G @ pre.covariance_start @ G.T
         return means, P
 
@@ -300,6 +344,8 @@ class GraphBackend(Backend):
         self._touched = set()
         p = self.isam.calculateEstimatePose2(X(self.k))
         self._pose_pred = np.array([p.x(), p.y(), p.theta()])
+        if self.calibration is not None:
+            self._c = np.asarray(self.isam.calculateEstimateVector(C), dtype=float)
         self.trajectory.append((self._pending_t, self._pose_pred.copy(), None))
 
     # ------------------------------------------------------------------ results
@@ -315,6 +361,17 @@ class GraphBackend(Backend):
             self.graph, self._est, self.times, self.kinds, self.covariances
         )
         return self.solution.trajectory()
+
+    def calibration_estimate(
+        self,
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None] | None:
+        """The wheel calibration errors: the final estimate's with its marginal covariance
+        after :meth:`finish`, before it iSAM2's current estimate alone."""
+        if self.calibration is None:
+            return None
+        if self.solution is not None:
+            return self.solution.calibration()
+        return self._c.copy(), None
 
     def final_estimate(self) -> gtsam.Values:
         """The converged estimate after :meth:`finish`, else iSAM2's current one."""
@@ -406,6 +463,17 @@ class GraphSolution:
             out.append(R @ C @ R.T)
         return out
 
+    def calibration(self) -> tuple[NDArray[np.float64], NDArray[np.float64] | None] | None:
+        """The wheel calibration errors (e_r, e_l, e_b) and their marginal covariance (None
+        if it cannot be computed), or None when the graph has no calibration variable."""
+        if not self.values.exists(C):
+            return None
+        mean = np.asarray(self.values.atVector(C), dtype=float)
+        try:
+            return mean, self._marginals().marginalCovariance(C)
+        except RuntimeError:
+            return mean, None
+
     def landmark_covariances(self) -> dict[int, NDArray[np.float64]]:
         try:
             m = self._marginals()
@@ -433,6 +501,8 @@ class BatchSmoother:
         t0 = time.perf_counter()
         dims = {X(k): 3 for k in range(len(source.times))}
         dims.update({L(lid): models.DIM[kind] for lid, kind in source.kinds.items()})
+        if source.calibration is not None:
+            dims[C] = 3
         try:
             values, self.iterations = levenberg_marquardt(
                 source.graph, source.final_estimate(), dims
@@ -459,6 +529,11 @@ class BatchSmoother:
     def landmark_covariances(self) -> dict[int, NDArray[np.float64]]:
         return self.solution.landmark_covariances()
 
+    def calibration_estimate(
+        self,
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None] | None:
+        return self.solution.calibration()
+
     def chi2_per_dof(self) -> float:
         sol = self.solution
         return chi2_per_dof(sol.graph, sol.values, len(sol.times), sol.kinds)
@@ -470,7 +545,7 @@ def chi2_per_dof(
     """2 x graph error / (measurement dof - variable dof) of ``values`` (``poses`` poses and
     the landmarks of ``kinds``); ~1 at the optimum of a consistent graph."""
     m = sum(graph.at(i).dim() for i in range(graph.size()))
-    n = 3 * poses + sum(models.DIM[k] for k in kinds.values())
+    n = 3 * poses + sum(models.DIM[k] for k in kinds.values()) + 3 * values.exists(C)
     return 2.0 * graph.error(values) / max(m - n, 1)
 
 

@@ -51,13 +51,16 @@ BACKENDS = ("ekf", "isam2", "batch")
 SENSORS = ("fused", "laser", "sonar")
 
 
-def make_backend(name: str, motion_gate_p: float = 0.999) -> Backend:
+def make_backend(
+    name: str, motion_gate_p: float = 0.999, calibration: NDArray[np.float64] | None = None
+) -> Backend:
     """A backend by name; ``motion_gate_p``: the EKF's gate between wheel odometry and a scan
-    match of one link (:meth:`EkfBackend.predict`)."""
+    match of one link (:meth:`EkfBackend.predict`); ``calibration``: the prior covariance of
+    the wheel calibration errors to estimate (None: off; ``OdometryConfig.calibration``)."""
     if name == "ekf":
-        return EkfBackend(motion_gate_p=motion_gate_p)
+        return EkfBackend(motion_gate_p=motion_gate_p, calibration=calibration)
     if name in ("isam2", "batch"):  # batch: the iSAM2 graph, solved by LM at the end
-        return GraphBackend()
+        return GraphBackend(calibration=calibration)
     raise ValueError(f"unknown backend {name!r}; expected one of {BACKENDS}")
 
 
@@ -90,6 +93,9 @@ class SlamResult:
     scan_times: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
     scan_poses: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 3)))
     loop_closures: list[dict] = field(default_factory=list)  # every attempt (loops.Closure)
+    # the wheel calibration errors estimated: {"estimate": [e_r, e_l, e_b], "sigma": [...] or
+    # None}; None when not estimated
+    calibration: dict | None = None
 
     @property
     def has_truth(self) -> bool:
@@ -113,8 +119,9 @@ class _Session(SlamStep):
         map_params: MapParams | None,
         loops: LoopCloser | None = None,
         motion_gate_p: float = 0.999,
+        calibration: NDArray[np.float64] | None = None,
     ) -> None:
-        super().__init__(make_backend(backend, motion_gate_p), map_params, loops)
+        super().__init__(make_backend(backend, motion_gate_p, calibration), map_params, loops)
         self.failed: dict | None = None
 
     @property
@@ -218,12 +225,13 @@ class SlamPipeline:
         origin = (cfg.laser.mount.x, cfg.laser.mount.y)
         self.scan_odometry = ScanOdometry(kp, mp, origin, cfg.laser.sigma_time)
         self._between: list[tuple[float, int, NDArray[np.float64]]] = []  # non-keyframes
+        cal = cfg.odometry.calibration_prior()
         for b in backends:
             if b == "ekf":
-                self.sessions[b] = _Session("ekf", map_params, None, kp.motion_gate_p)
+                self.sessions[b] = _Session("ekf", map_params, None, kp.motion_gate_p, cal)
             elif b in ("isam2", "batch") and "graph" not in self.sessions:
                 loop = LoopCloser(lp, mp, origin, cfg.laser.sigma_time) if lp.enabled else None
-                self.sessions["graph"] = _Session("isam2", map_params, loop)
+                self.sessions["graph"] = _Session("isam2", map_params, loop, calibration=cal)
         self.reorder = ReorderBuffer(reorder_window)
         self.frontend = FrontEnd(cfg, sensors, select=self._select)
         self._steps: deque = deque()  # the scan odometry's decisions, in scan order
@@ -516,6 +524,7 @@ def _result(
         lid: models.normalize(sess.mapper.landmarks[lid].kind, m) for lid, m in be.means().items()
     }
     covs = be.landmark_covariances() if final else {}
+    cal = be.calibration_estimate()
     finish = time.perf_counter() - t0
     st = Counter(stats)
     st.update(sess.stats)
@@ -551,6 +560,12 @@ def _result(
         stats=st,
         batch_seconds=batch_seconds,
         landmark_counts=list(sess.landmark_counts),
+        calibration=None
+        if cal is None
+        else {
+            "estimate": cal[0].tolist(),
+            "sigma": None if cal[1] is None else np.sqrt(np.diag(cal[1])).tolist(),
+        },
     )
 
 
