@@ -2,10 +2,12 @@
 iSAM2, batch) and sensor mode (fused, laser only, sonar only).
 
 Run: python experiments/paper_corridor.py [--seeds 10] [--workers 2] [--sensors fused ...]
-[--association jcbb|nn] [--mode paper|scan] [--json NAME]
+[--association jcbb|nn] [--mode paper|scan] [--calibration off|wheels] [--json NAME]
 ``--mode paper`` (default) is the paper's scheme: wheel odometry, every scan a keyframe, no
 loop closures; ``scan`` the configuration's defaults (scan matching, keyframes by motion,
-loop closures; issue 14).
+loop closures; issue 14). ``--calibration wheels`` estimates the wheel calibration errors
+(issue 15; default: the configuration's, off); a second table then compares the estimates
+with the simulator's true errors.
 Prints a table of means over seeds (ATE RMSE, maximum error, final error, NEES, landmarks,
 time) and the share of seeds in which the run "kept track" (maximum position error below
 0.5 m); writes experiments/paper_corridor.png and the per-seed reports to
@@ -27,7 +29,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from fgslam import evaluation
-from fgslam.config import load_config, with_scanmatch
+from fgslam.config import load_config, with_options
 from fgslam.logfile import LogReader
 from fgslam.sim import simulate_to_log
 from fgslam.sim.world import load_world
@@ -43,7 +45,11 @@ MODES = {
 
 
 def one_seed(
-    seed: int, sensors_list=SENSORS, association: str = "jcbb", mode: str = "paper"
+    seed: int,
+    sensors_list=SENSORS,
+    association: str = "jcbb",
+    mode: str = "paper",
+    calibration: str | None = None,
 ) -> list[dict]:
     with tempfile.TemporaryDirectory() as d:
         log = Path(d) / "run.log.gz"
@@ -51,7 +57,11 @@ def one_seed(
         reader = LogReader(log)
         true_map = reader.meta["true_map"]
         rows = []
-        cfg = with_scanmatch(reader.config, MODES[mode])
+        cfg = with_options(
+            reader.config, {"scanmatch": MODES[mode], "odometry": {"calibration": calibration}}
+        )
+        sim = reader.meta["sim_params"]
+        true_cal = [sim["radius_error_right"], sim["radius_error_left"], sim["wheelbase_error"]]
         for sensors in sensors_list:
             for res in run_backends(
                 LogReader(log), cfg, list(BACKENDS), sensors, association=association
@@ -60,6 +70,8 @@ def one_seed(
                 rep["seed"] = seed
                 rep["association"] = association
                 rep["mode"] = mode
+                if "calibration" in rep:
+                    rep["calibration"]["truth"] = true_cal
                 ref = evaluation.interpolate_poses(res.truth_t, res.truth, res.times)
                 err = evaluation.position_errors(res.poses, ref, align=False)
                 rep["error_curve"] = [res.times.tolist()[::10], err.tolist()[::10]]
@@ -70,8 +82,9 @@ def one_seed(
 def summarise(rows: list[dict]) -> str:
     out = [
         "| backend | sensors | kept track | ATE RMSE (m) | max error (m) | final error (m) | "
-        "NEES (3 dof) | landmarks | line / corner / point | real-time factor |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "NEES (3 dof) | NEES in 95 % band | landmarks | line / corner / point | "
+        "real-time factor |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for sensors in SENSORS:
         for backend in BACKENDS:
@@ -82,6 +95,7 @@ def summarise(rows: list[dict]) -> str:
             mx = np.array([r["ate"]["max"] for r in rs])
             fin = np.array([r["final_pose_error"]["position_m"] for r in rs])
             nees = np.array([r.get("nees", {}).get("mean", np.nan) for r in rs])
+            band = np.array([r.get("nees", {}).get("within_95", np.nan) for r in rs])
             lm = np.array([r["landmarks_total"] for r in rs])
             kinds = [
                 np.mean([r["landmarks"].get(k, 0) for r in rs]) for k in ("line", "corner", "point")
@@ -91,9 +105,36 @@ def summarise(rows: list[dict]) -> str:
             out.append(
                 f"| {backend} | {sensors} | {kept:.0%} | {ate.mean():.3f} +- {ate.std():.3f} | "
                 f"{mx.mean():.3f} (worst {mx.max():.2f}) | {fin.mean():.3f} | "
-                f"{np.nanmedian(nees):.1f} | {lm.mean():.0f} | "
+                f"{np.nanmedian(nees):.1f} | {np.nanmean(band):.0%} | {lm.mean():.0f} | "
                 f"{kinds[0]:.0f} / {kinds[1]:.0f} / {kinds[2]:.0f} | {rt.mean():.1f} |"
             )
+    cal = [r for r in rows if r.get("calibration")]
+    if cal:
+        out += [
+            "\nWheel calibration errors (e_r, e_l, e_b; 1e-3), mean +- std over seeds of the "
+            "estimate, its mean sigma, the truth, and the share of seeds with all three within "
+            "3 sigma of the truth:\n",
+            "| backend | sensors | e_r | e_l | e_b | sigma (e_r, e_l, e_b) | truth "
+            "| within 3 sigma |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
+        for sensors in SENSORS:
+            for backend in BACKENDS:
+                rs = [r for r in cal if r["backend"] == backend and r["sensors"] == sensors]
+                if not rs:
+                    continue
+                est = 1e3 * np.array([r["calibration"]["estimate"] for r in rs])
+                sig = 1e3 * np.array([r["calibration"]["sigma"] or [np.nan] * 3 for r in rs])
+                tru = 1e3 * np.array([r["calibration"]["truth"] for r in rs])
+                inside = np.mean(np.all(np.abs(est - tru) < 3 * sig, axis=1))
+                cells = [
+                    f"{m:.2f} +- {d:.2f}" for m, d in zip(est.mean(0), est.std(0), strict=True)
+                ]
+                out.append(
+                    f"| {backend} | {sensors} | {' | '.join(cells)} | "
+                    f"{', '.join(f'{v:.2f}' for v in np.nanmean(sig, 0))} | "
+                    f"{', '.join(f'{v:.1f}' for v in tru.mean(0))} | {inside:.0%} |"
+                )
     odo = np.array(
         [
             r["ate_odometry"]["rmse"]
@@ -103,7 +144,8 @@ def summarise(rows: list[dict]) -> str:
     )
     out.append(
         f"\nOdometry alone: ATE RMSE {odo.mean():.2f} +- {odo.std():.2f} m over {odo.size} "
-        "seeds. NEES: median over seeds of the mean pose NEES."
+        "seeds. NEES: median over seeds of the mean pose NEES; band: mean over seeds of the "
+        "share of keyframes inside the two-sided 95 % chi-square interval."
     )
     return "\n".join(out)
 
@@ -138,6 +180,11 @@ def main() -> None:
     ap.add_argument("--sensors", nargs="+", default=list(SENSORS), choices=SENSORS)
     ap.add_argument("--association", default="jcbb", choices=["jcbb", "nn"])
     ap.add_argument("--mode", default="paper", choices=list(MODES))
+    ap.add_argument(
+        "--calibration",
+        choices=["off", "wheels"],
+        help="estimate the wheel calibration (default: the configuration's, off)",
+    )
     ap.add_argument("--json", default="paper_corridor.json", help="name in experiments/out")
     ap.add_argument(
         "--replot", action="store_true", help="table and figure from experiments/out only"
@@ -157,6 +204,7 @@ def main() -> None:
             [tuple(args.sensors)] * n,
             [args.association] * n,
             [args.mode] * n,
+            [args.calibration] * n,
         ):
             rows.extend(rs)
             print(f"seed {rs[0]['seed']} done", flush=True)

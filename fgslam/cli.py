@@ -182,13 +182,13 @@ def _log_duration(path: str) -> float | None:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
-    from fgslam.config import with_scanmatch
+    from fgslam.config import with_options
     from fgslam.readers import open_log
     from fgslam.slam.outputs import write_outputs
     from fgslam.slam.runner import run_slam
 
     reader = open_log(args.log, **_reader_options(args))
-    cfg = with_scanmatch(_run_config(reader, args.config, args.log), _scanmatch_options(args))
+    cfg = with_options(_run_config(reader, args.config, args.log), _config_options(args))
     d = reader.meta.get("duration")
     total = float(d) if isinstance(d, int | float) else None
     bar = _progress_bar(f"{args.backend}/{args.sensors}")
@@ -409,7 +409,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
         args.config,
         _reader_options(args),
         args.association,
-        _scanmatch_options(args),
+        _config_options(args),
     )
     print((Path(args.out) / "comparison.md").read_text(), end="")
     print(f"wrote {args.out}/comparison.json, comparison.md, comparison.png and one folder per run")
@@ -430,7 +430,7 @@ def _compare(
     config: str | None,
     options: dict | None = None,
     association: str = "jcbb",
-    scanmatch: dict | None = None,
+    sections: dict | None = None,
 ) -> list:
     from tqdm import tqdm
 
@@ -451,7 +451,7 @@ def _compare(
             on_done=lambda _res: bar.update(1),
             options=options,
             association=association,
-            scanmatch=scanmatch,
+            sections=sections,
         )
 
 
@@ -475,7 +475,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     # the paper's experiment in the paper's scheme (wheel odometry, every scan a keyframe);
     # `fgslam compare` on the log runs the scan-matching defaults
     paper = {"odometry": "wheels", "keyframes": "every-scan", "loop_closures": "off"}
-    _compare(str(log), str(out), None, scanmatch=paper)
+    _compare(str(log), str(out), None, sections={"scanmatch": paper})
     print((out / "comparison.md").read_text(), end="")
     print(
         f"demo done in {time.perf_counter() - t0:.0f} s: see {out}/comparison.png and "
@@ -541,10 +541,10 @@ def _cmd_emulate(args: argparse.Namespace) -> int:
 
 
 def _cmd_online(args: argparse.Namespace) -> int:
-    from fgslam.config import load_config, with_scanmatch
+    from fgslam.config import load_config, with_options
     from fgslam.online import StopSignal, device_summary, online_main
 
-    cfg = with_scanmatch(load_config(args.config), _scanmatch_options(args))
+    cfg = with_options(load_config(args.config), _config_options(args))
     with StopSignal("stopping: processing what has arrived, writing outputs") as sig:
         run, rep = online_main(
             cfg,
@@ -602,14 +602,24 @@ def _add_scanmatch_arguments(p: argparse.ArgumentParser) -> None:
         help="verified loop closures by scan matching (iSAM2 and batch; the EKF keeps no "
         "past poses to close a loop on)",
     )
+    g.add_argument(
+        "--calibration",
+        choices=["off", "wheels"],
+        help="estimate the wheel calibration (relative errors of the wheel radii and the "
+        "wheelbase; report.json: calibration) or take the configuration's as exact "
+        "(default: the configuration's [odometry] calibration)",
+    )
 
 
-def _scanmatch_options(args: argparse.Namespace) -> dict:
-    """The command line's overrides of the configuration's [scanmatch] section."""
+def _config_options(args: argparse.Namespace) -> dict[str, dict]:
+    """The command line's overrides of the configuration, by section."""
     return {
-        "odometry": getattr(args, "odometry", None),
-        "keyframes": getattr(args, "keyframes", None),
-        "loop_closures": getattr(args, "loops", None),
+        "scanmatch": {
+            "odometry": getattr(args, "odometry", None),
+            "keyframes": getattr(args, "keyframes", None),
+            "loop_closures": getattr(args, "loops", None),
+        },
+        "odometry": {"calibration": getattr(args, "calibration", None)},
     }
 
 

@@ -295,11 +295,22 @@ def frontend_thresholds(cfg: RobotConfig) -> dict[str, Any]:
 def with_scanmatch(cfg: RobotConfig, overrides: dict[str, Any] | None) -> RobotConfig:
     """``cfg`` with keys of its ``[scanmatch]`` section replaced (None values ignored), checked
     as a configuration file's would be (command-line options such as ``--odometry``)."""
-    given = {k: v for k, v in (overrides or {}).items() if v is not None}
+    return with_options(cfg, {"scanmatch": overrides or {}})
+
+
+def with_options(cfg: RobotConfig, sections: dict[str, dict[str, Any]] | None) -> RobotConfig:
+    """``cfg`` with keys of its sections replaced (``{"odometry": {"calibration": "wheels"}}``;
+    None values ignored), checked as a configuration file's would be (command-line options)."""
+    given = {
+        name: {k: v for k, v in keys.items() if v is not None}
+        for name, keys in (sections or {}).items()
+    }
+    given = {name: keys for name, keys in given.items() if keys}
     if not given:
         return cfg
     data = cfg.to_dict()
-    data["scanmatch"].update(given)
+    for name, keys in given.items():
+        data[name].update(keys)
     return dataclasses.replace(from_dict(data, "command line"), source=cfg.source)
 
 

@@ -18,7 +18,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from fgslam import evaluation, safeio
-from fgslam.config import RobotConfig, check_against_log, override_config, with_scanmatch
+from fgslam.config import RobotConfig, check_against_log, override_config, with_options
 from fgslam.readers import open_log
 from fgslam.slam.outputs import ScanSample, write_outputs
 from fgslam.slam.runner import BACKENDS, SENSORS, SlamResult, run_backends
@@ -30,12 +30,12 @@ def _open(
     log: str,
     config: str | None,
     options: dict[str, Any] | None,
-    scanmatch: dict[str, Any] | None = None,
+    sections: dict[str, dict[str, Any]] | None = None,
 ):
     reader = open_log(log, **(options or {}))
     cfg = override_config(reader.config, config)
     check_against_log(cfg, reader.config, str(log))
-    return reader, with_scanmatch(cfg, scanmatch)
+    return reader, with_options(cfg, sections)
 
 
 def _run_mode(
@@ -46,11 +46,11 @@ def _run_mode(
     options: dict[str, Any] | None,
     keep_scans: bool,
     association: str = "jcbb",
-    scanmatch: dict[str, Any] | None = None,
+    sections: dict[str, dict[str, Any]] | None = None,
 ) -> tuple[list[SlamResult], dict[str, Any]]:
     """The backends in one sensor mode; also what the log holds (event counts, a sample of
     its scans for the maps when ``keep_scans``)."""
-    reader, cfg = _open(log, config, options, scanmatch)
+    reader, cfg = _open(log, config, options, sections)
     counts: Counter = Counter()
     sample = ScanSample()
 
@@ -77,18 +77,19 @@ def compare(
     on_done: Callable[[SlamResult], None] | None = None,
     options: dict[str, Any] | None = None,
     association: str = "jcbb",
-    scanmatch: dict[str, Any] | None = None,
+    sections: dict[str, dict[str, Any]] | None = None,
 ) -> list[dict[str, Any]]:
     """Every backend in every sensor mode on ``log`` (any format :func:`open_log` reads, with
     reader ``options``; ``config`` overrides the log's configuration key by key); one process
     per sensor mode (the front end runs once per mode and feeds all backends);
-    ``association`` "jcbb" or "nn" for every run; ``scanmatch`` overrides keys of the
-    configuration's ``[scanmatch]`` section. Returns the rows of the comparison."""
+    ``association`` "jcbb" or "nn" for every run; ``sections`` overrides keys of the
+    configuration's sections (``{"scanmatch": {...}, "odometry": {...}}``, the command
+    line's options). Returns the rows of the comparison."""
     from fgslam.sim.world import BUILTIN_WORLDS, load_world
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    reader, cfg = _open(str(log), config, options, scanmatch)
+    reader, cfg = _open(str(log), config, options, sections)
     true_map = reader.meta.get("true_map")
     world = load_world(reader.world) if getattr(reader, "world", None) in BUILTIN_WORLDS else None
     truth_kind = getattr(reader, "reference_kind", None) or "ground truth"
@@ -106,7 +107,7 @@ def compare(
                 options,
                 i == 0,
                 association,
-                scanmatch,
+                sections,
             )
             for i, s in enumerate(sensors)
         ]
@@ -191,7 +192,8 @@ def _scanmatch_line(cfg: RobotConfig, results: list[SlamResult]) -> str:
     sm = cfg.scanmatch
     line = (
         f"- keyframes (laser modes; sonar only: every step, wheel odometry): {sm.keyframes}, "
-        f"linked by {sm.odometry} odometry; loop closures {sm.loop_closures}"
+        f"linked by {sm.odometry} odometry; loop closures {sm.loop_closures}; wheel "
+        f"calibration {cfg.odometry.calibration}"
     )
     loops = {
         r.backend: sum(c["accepted"] for c in r.loop_closures) for r in results if r.loop_closures
