@@ -543,13 +543,25 @@ def fuse_motions(a: Preintegrated, b: Preintegrated) -> Preintegrated:
     """The information-weighted fusion of two independent measurements of one relative
     motion (e.g. wheel odometry and a scan match), linearised in the tangent at ``b``:
     C = (Ca^-1 + Cb^-1)^-1, xi = C Ca^-1 (a - b), delta = b retracted by xi; the same as the
-    two between factors of the factor graph solved together, to first order."""
+    two between factors of the factor graph solved together, to first order. A calibration
+    Jacobian of ``a`` (wheel odometry) is carried into the fusion's, through the chain
+    a (start axes -> a's tangent) -> xi (Log's derivative) -> C Ca^-1 xi -> delta (Exp's
+    derivative, then delta's tangent -> start axes)."""
     xi = b.delta.localCoordinates(a.delta)
     Ia = np.linalg.inv(a.covariance)
     C = np.linalg.inv(Ia + np.linalg.inv(b.covariance))
     C = 0.5 * (C + C.T)
-    d = b.delta.retract(C @ Ia @ xi)
-    return relative_pose([d.x(), d.y(), d.theta()], C)
+    xf = C @ Ia @ xi
+    d = b.delta.retract(xf)
+    out = relative_pose([d.x(), d.y(), d.theta()], C)
+    if a.calibration_jacobian is None:
+        return out
+    Ra, Rd = np.eye(3), np.eye(3)
+    Ra[:2, :2] = rot(a.delta.theta()).T
+    Rd[:2, :2] = rot(d.theta())
+    J = Rd @ gtsam.Pose2.ExpmapDerivative(xf) @ C @ Ia
+    J = J @ gtsam.Pose2.LogmapDerivative(b.delta.between(a.delta)) @ Ra
+    return dataclasses.replace(out, calibration_jacobian=J @ a.calibration_jacobian)
 
 
 def link_motions(

@@ -183,3 +183,24 @@ def test_calibration_uncertainty_spreads_the_motion_as_the_jacobian_says():
     C = np.cov(np.array(ends).T)
     want = Jc @ S @ Jc.T
     np.testing.assert_allclose(np.sqrt(np.diag(C)), np.sqrt(np.diag(want)), rtol=0.06)
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_fusion_with_a_scan_match_carries_the_calibration_jacobian(seed):
+    """Fusing calibrated wheels with a scan match: the fused motion moves with the
+    calibration errors as its Jacobian says (finite differences through the fusion)."""
+    from factors.odometry import fuse_motions, relative_pose, with_calibration
+
+    rng = np.random.default_rng(200 + seed)
+    wheels = preintegrate(*random_samples(rng), PARAMS)
+    d = np.array([wheels.delta.x(), wheels.delta.y(), wheels.delta.theta()])
+    scan = relative_pose(d + rng.normal(0, 0.02, 3), np.diag(rng.uniform(1e-4, 1e-3, 3)))
+    fused = fuse_motions(wheels, scan)
+
+    def f(c):  # covariances held at the linearisation point, as every Jacobian here does
+        moved = dataclasses.replace(with_calibration(wheels, c), covariance=wheels.covariance)
+        m = fuse_motions(moved, scan).delta
+        return np.array([m.x(), m.y(), m.theta()])
+
+    J = fused.calibration_jacobian
+    np.testing.assert_allclose(J, numeric_jacobian(f, np.zeros(3)), atol=1e-6 * np.abs(J).max())

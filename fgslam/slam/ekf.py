@@ -32,8 +32,9 @@ class EkfBackend(Backend):
 
     ``calibration``: the prior covariance (3x3) of the wheel calibration errors (e_r, e_l,
     e_b), then three states after the pose, predicted through the wheel odometry's
-    Jacobian w.r.t. them (a link fused with a scan match uses their estimate but does not
-    update them: the filter keeps no previous pose to relate the two by); None: off."""
+    Jacobian w.r.t. them (a link fused with a scan match through the fusion's Jacobian,
+    :func:`factors.odometry.fuse_motions`; a scan match alone does not involve them);
+    None: off."""
 
     name = "ekf"
     supports_loops = False  # a filter keeps no past pose to close a loop on
