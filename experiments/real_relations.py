@@ -3,7 +3,7 @@ laser-only SLAM with each backend, next to odometry alone, the reference (GMappi
 the published figures.
 
 Run: python experiments/real_relations.py [--logs intel mit-csail freiburg-079]
-       [--backends ekf isam2 batch] [--max-scans N]
+       [--backends ekf isam2 batch] [--max-scans N] [--calibration off|wheels]
 Reads ``../shared/data/<log>`` with fgslam.readers (corrected logs: odometry rebuilt, the
 corrected poses as reference; mit-csail: a raw log), runs the front end in "laser" mode and
 the backends (iSAM2 and batch share one graph; the EKF alone), and scores the keyframe poses
@@ -22,7 +22,7 @@ import numpy as np
 from real_carmen import limited  # the same scan limit as the ATE experiment
 
 from fgslam import dense, evaluation
-from fgslam.config import with_scanmatch
+from fgslam.config import with_options
 from fgslam.readers import open_log
 from fgslam.readers.carmen import odometry_chain
 from fgslam.slam.outputs import ScanSample, laser_points
@@ -100,6 +100,7 @@ def run(
     mode: str = "scan",
     header: bool = True,
     figures: Path | None = None,
+    calibration: str | None = None,
 ) -> None:
     log_file, rel_file = FILES[name]
     path, rel = DATA / log_file, dense.read_relations(DATA / rel_file)
@@ -109,7 +110,9 @@ def run(
     first = header
     for group in [g for g in groups if g]:
         reader = open_log(path)
-        cfg = with_scanmatch(reader.config, MODES[mode])
+        cfg = with_options(
+            reader.config, {"scanmatch": MODES[mode], "odometry": {"calibration": calibration}}
+        )
         sample = ScanSample(max_scans=1500)
         t0 = time.perf_counter()
         results = run_backends(tap(limited(reader, max_scans), sample), cfg, group, "laser")
@@ -135,6 +138,9 @@ def run(
             if figures is not None and res.backend == "isam2":
                 figure(figures, name, mode, res, sample, cfg)
             loops = sum(c["accepted"] for c in res.loop_closures)
+            if res.calibration is not None:
+                est = ", ".join(f"{1e3 * v:.1f}" for v in res.calibration["estimate"])
+                note += f" (calibration 1e-3: {est})"
             print(
                 f"| {name} | {res.backend} ({mode}){note} | {fmt(m)} | {ate} | "
                 f"{len(res.landmarks)} | {len(res.times)} | {loops} | {wall:.0f} |",
@@ -160,6 +166,11 @@ def main() -> None:
     ap.add_argument(
         "--figures", type=Path, default=None, help="write real_map_*.png into this folder"
     )
+    ap.add_argument(
+        "--calibration",
+        choices=["off", "wheels"],
+        help="estimate the wheel calibration (default: the log's configuration, off)",
+    )
     args = ap.parse_args()
     print(
         "| log | estimate | relations trans (m): mean ± std (max) | rot (deg) | relations used "
@@ -168,7 +179,15 @@ def main() -> None:
     print("|---|---|---|---|---|---|---|---|---|---|")
     for name in args.logs:
         for i, mode in enumerate(args.modes):
-            run(name, args.backends, args.max_scans, mode, header=i == 0, figures=args.figures)
+            run(
+                name,
+                args.backends,
+                args.max_scans,
+                mode,
+                header=i == 0,
+                figures=args.figures,
+                calibration=args.calibration,
+            )
 
 
 if __name__ == "__main__":
