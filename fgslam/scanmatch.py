@@ -21,13 +21,26 @@ Pipeline of :func:`match` (DESIGN 5b):
 2. **Point-to-line ICP** from the best pose: nearest reference point (cKDTree) within
    ``corr_distance``, the residual along its local line (PCA of its neighbours within
    ``normal_radius``: normal and centroid), Cauchy weights on a MAD scale, Gauss-Newton in
-   the query's body tangent (GTSAM's Pose2 retract).
+   the query's body tangent (GTSAM's Pose2 retract). ICP also starts from up to
+   ``max_basins`` - 1 other basins of the response (poses within ``basin_nats`` / N of the
+   best score, more than 3 cells or 3 rotation steps apart, ending inside the window):
+   the correlative score on its grid is only a proxy, and a periodic scene (doors along a
+   corridor) has several basins of similar score. The results are compared by their cost
+   sum min(r^2 / s2, ``inlier_sigmas``^2) over the query points both match (a point matched
+   at one pose only, far on a grazing wall, says as much about the sampling as about the
+   pose). The estimate stays the best correlative basin's: the others only widen its
+   covariance (3.). Taking the lowest cost instead broke the MIT map (relations 0.037 ->
+   0.043 m, max 0.35 -> 2.6 m).
 3. **Covariance**, body tangent at the estimate (GTSAM's BetweenFactorPose2 convention;
    ``cov_ref`` in the reference's axes):
 
    - H = sum J J^T over the inliers, minus what the noise of the reference normals adds to
      it (sum var(alpha) Jt Jt^T, Jt: the Jacobian along the line): along a featureless wall
-     noisy normals otherwise fake information.
+     noisy normals otherwise fake information. var(alpha) is the PCA line's: scatter across
+     the line over the spread along it, the scatter never below ``sigma_range``^2 (the
+     PLS's 5 cm quantum makes a straight wall a staircase whose local fits look straighter,
+     and tilted, than they are: in the simulated corridor those tilts of 3-6 deg were the
+     only information along it, and matches slid by 0.3 m a scan).
    - s2 = residual variance (sum r^2 / (m - 3)), never below ``sigma_range``^2.
    - kappa, per axis = ``cov_inflation`` * max(1, S_ii / (s2 H_ii)), S the Newey-West (HAC,
      ``hac_lags`` beams, Bartlett) covariance of the gradient sum J r in beam order:
@@ -46,6 +59,12 @@ Pipeline of :func:`match` (DESIGN 5b):
      ``response_gain`` = 3 nats per point per unit score was chosen on the simulated scenes
      (1 is conservative in corridors; the sensor's own 1/s2 scale, about 10, overconfident
      where 5 cm quantisation fakes the 4 cm door recesses).
+   - plus, likewise, the other basins' ICP results, weighted by exp(-t^2 / 2), t the cost
+     difference to the estimate's over its own noise (a paired test: sqrt(n kappa) times the
+     spread of the per-point differences): a basin as good as the estimate within the
+     residuals' noise is a tie, weighs as much and widens the covariance over both (then
+     usually rejected as ambiguous), instead of a confident answer one door period off.
+     These basins' response poses no longer count on their own.
 4. **Rejection** (``ok`` False, ``reason``): too few points (query, reference, inliers);
    diverged (non-finite, or ICP moved beyond the window from the search's pose); score below
    ``min_score`` (0.5) or inlier fraction below ``min_overlap`` (0.25): on the Intel and
@@ -113,6 +132,11 @@ class MatchParams:
     min_score: float = 0.5  # correlative score below: rejected
     min_overlap: float = 0.25  # inlier fraction below: rejected
     max_ambiguity: float = 0.5  # 1-sigma extent / window half-width above: rejected
+    max_basins: int = 4  # ICP from this many distinct basins of the response; 1: the best only
+    # response poses within this (score x points) below the best are basin starts: on the
+    # 3-5 cm grid a basin one door period off scored 8 below the right one in a periodic
+    # corridor (tests), so the starts reach further than the response's mode_nats
+    basin_nats: float = 20.0
 
     @classmethod
     def for_laser(
@@ -422,9 +446,10 @@ def _normals(p: NDArray, tree: cKDTree, params: MatchParams) -> tuple[NDArray, N
     n = np.column_stack([-np.sin(ang), np.cos(ang)])
     line = (cnt >= 3) & (lmin <= 0.04 * lmax) & (lmax > 0)
     n[~line] = np.nan
-    var = np.where(
-        line, np.maximum(lmin, 0.0) / np.maximum(cnt - 2, 1) / np.maximum(lmax, 1e-12), 0
-    )
+    # scatter across the line: the observed one, never below the sensor's range noise (5 cm
+    # quantisation fits a staircase that looks straighter, and tilted, than it is)
+    s2 = np.maximum(np.maximum(lmin, 0.0) / np.maximum(cnt - 2, 1), params.sigma_range**2)
+    var = np.where(line, s2 / np.maximum(lmax, 1e-12), 0)
     return n, mean, var
 
 
@@ -522,7 +547,9 @@ def _search(ref: Reference, q: NDArray, guess: NDArray, params: MatchParams) -> 
             j = int(np.argmax(b))
             r, x, y = cr[j : j + 1], cx[j : j + 1], cy[j : j + 1]
         lower = max(lower, float(evaluate(0, r, x, y)[0]))
-    margin_score = params.mode_nats / max(npts, 1)  # kept: within mode_nats at gain 1
+    # kept: within mode_nats (the response) or basin_nats (ICP starts) at gain 1
+    nats = max(params.mode_nats, params.basin_nats if params.max_basins > 1 else 0.0)
+    margin_score = nats / max(npts, 1)
     lev = nlev
     while True:
         thr = lower - margin_score
@@ -629,6 +656,64 @@ def _icp(ref: Reference, q: NDArray, pose0: NDArray, params: MatchParams) -> _Ic
     return _Icp(pose, J, r, idx, it, converged, Jt)
 
 
+def _seeds(resp: _Response, res: float, most: int) -> list[int]:
+    """Indices of up to ``most`` response poses, best first, each more than 3 cells or 3
+    rotation steps from every one before it: one start per basin."""
+    out: list[int] = []
+    if most <= 0 or len(resp.scores) == 0:
+        return out
+    for k in np.argsort(-resp.scores, kind="stable"):
+        p = resp.poses[k]
+        far = True
+        for j in out:
+            d = p - resp.poses[j]
+            if np.hypot(d[0], d[1]) <= 3 * res and abs(_wrap(float(d[2]))) <= 3 * resp.step:
+                far = False
+                break
+        if far:
+            out.append(int(k))
+            if len(out) >= most:
+                break
+    return out
+
+
+def _same(a: NDArray, b: NDArray, res: float, step: float) -> bool:
+    """Whether two ICP results are one basin: within 2 cells and 2 rotation steps."""
+    d = a - b
+    return bool(np.hypot(d[0], d[1]) <= 2 * res and abs(_wrap(float(d[2]))) <= 2 * step)
+
+
+def _inside(pose: NDArray, guess: NDArray, params: MatchParams, res: float, step: float) -> bool:
+    """Whether ``pose`` lies in the search window around ``guess`` (a cell, a step of margin)."""
+    d = pose - guess
+    return bool(
+        max(abs(d[0]), abs(d[1])) <= params.search_xy + res
+        and abs(_wrap(float(d[2]))) <= params.search_theta + step
+    )
+
+
+def _costs(ref: Reference, q: NDArray, pose: NDArray, s2: float, params: MatchParams) -> NDArray:
+    """Per query point at ``pose``: its point-to-line r^2 / s2, capped at
+    ``inlier_sigmas``^2; NaN where it has no correspondence."""
+    _, idx, _, _, r = _correspond(ref, q, pose, params)
+    out = np.full(len(q), np.nan)
+    out[idx] = np.minimum(r**2 / s2, params.inlier_sigmas**2)
+    return out
+
+
+def _dcost(a: NDArray, b: NDArray) -> tuple[float, float]:
+    """Cost of ``a`` minus that of ``b`` over the points both matched (a point matched at
+    one pose only says as much about the sampling of far, grazing surfaces as about the
+    pose), and the standard deviation of that sum from the spread of the per-point
+    differences (paired: how much of it the residuals' own noise explains; NaN below 6
+    common points)."""
+    both = np.isfinite(a) & np.isfinite(b)
+    d = a[both] - b[both]
+    if len(d) < 6:
+        return 0.0, math.nan
+    return float(d.sum()), math.sqrt(len(d) * float(np.var(d, ddof=1)))
+
+
 def _hac(J: NDArray, r: NDArray, order: NDArray, lags: int) -> NDArray:
     """Newey-West (Bartlett-weighted) covariance of the gradient sum_i J_i r_i, with the
     residuals correlated between beams up to ``lags`` apart (``order``: beam index of each
@@ -680,6 +765,41 @@ def match(
     start = resp.poses[resp.best]
     score = float(resp.scores[resp.best])
     icp = _icp(ref, q, start, params)
+    # ICP from the other basins of the response too (up to max_basins starts, reaching
+    # basin_nats below the best): the correlative score on its grid is only a proxy, and a
+    # periodic scene (doors along a corridor) has several basins of similar score
+    seeds = _seeds(resp, res, params.max_basins)
+    seed_poses = resp.poses[seeds]
+    near = resp.scores >= score - params.mode_nats / max(resp.n, 1)
+    best = int(np.argmax(resp.scores[near]))
+    resp = replace(resp, poses=resp.poses[near], scores=resp.scores[near], best=best)
+    alts: list[tuple[_Icp, float, float]] = []
+    owned = np.zeros(len(resp.poses), dtype=bool)
+    if len(seeds) > 1 and len(icp.r) >= 6:
+        qr = q @ _rot(float(g[2])).T + g[:2]
+        use = ref.covered(qr, params.search_theta, params.search_xy)
+        qc = q[use] if use.sum() >= max(params.min_coverage * len(q), 3) else q
+        s2_0 = max(params.sigma_range**2, float(icp.r @ icp.r) / max(len(icp.r) - 3, 1))
+        runs = [(icp, _costs(ref, qc, icp.pose, s2_0, params), 0)]
+        for k in range(1, len(seeds)):
+            alt = _icp(ref, q, seed_poses[k], params)
+            # one run per basin (the first, by score), and only inside the window
+            if (
+                len(alt.r) >= 6
+                and _inside(alt.pose, g, params, res, resp.step)
+                and not any(_same(alt.pose, a.pose, res, resp.step) for a, _, _ in runs)
+            ):
+                runs.append((alt, _costs(ref, qc, alt.pose, s2_0, params), k))
+        c0 = runs[0][1]
+        for a, c, k in runs[1:]:
+            dc, sd = _dcost(c, c0)
+            if not math.isfinite(sd):
+                continue  # too few common points: the response speaks for it
+            alts.append((a, dc, sd))
+            # the response's poses in this basin stand for it no more
+            dd = resp.poses - seed_poses[k]
+            dd[:, 2] = (dd[:, 2] + math.pi) % (2 * math.pi) - math.pi
+            owned |= (np.hypot(dd[:, 0], dd[:, 1]) <= 3 * res) & (np.abs(dd[:, 2]) <= 3 * resp.step)
     pose = icp.pose
     m = len(icp.r)
     overlap = m / len(q)
@@ -717,9 +837,20 @@ def match(
     # explains are the best basin itself: only the others widen the covariance
     local = A @ cov_icp @ A.T + np.diag([res**2, res**2, resp.step**2])
     maha = np.einsum("ij,ij->i", d @ np.linalg.inv(local), d)
-    far = maha > params.basin_chi2
+    far = (maha > params.basin_chi2) & ~owned
     wts = np.exp(-np.clip(nats, 0.0, 700.0)) * far
     total = 1.0 + wts.sum()  # the best basin counts with weight 1
+    # other basins ICP converged to elsewhere, weighted by their likelihood ratio
+    # (a paired test: the cost difference over its noise, correlated beams counted): a
+    # basin as good as the best within the residuals' noise is a tie and weighs as much
+    for alt, dc, sd in alts:
+        da = alt.pose - pose
+        da[2] = _wrap(float(da[2]))
+        t = max(dc, 0.0) / max(sd * math.sqrt(kappa), 1e-9)
+        wa = math.exp(-0.5 * min(t * t, 1400.0))
+        d = np.vstack([d, da])
+        wts = np.append(wts, wa)
+        total += wa
     M_ref = (d * wts[:, None]).T @ d / total
     cov_ref = A @ cov_icp @ A.T + M_ref
     cov_ref = 0.5 * (cov_ref + cov_ref.T)
