@@ -64,7 +64,8 @@ class OdometryConfig:
     hole_turn_rate: float = 1.0  # rad/s it may have turned at
     # "wheels": the wheel calibration errors (e_r, e_l, e_b: relative errors of the right and
     # left wheel distances and of the wheelbase) are estimated (a graph variable; EKF states);
-    # "off": the nominal radii and wheelbase are taken as exact
+    # "off": the nominal radii and wheelbase are taken as exact (a log header without the
+    # key: off, as the log was run)
     calibration: str = "off"
     # prior standard deviations of (e_r, e_l, e_b): how far the nominal values may be off
     # (tyre wear and load change a radius by about 1 %, the contact patch the wheelbase)
