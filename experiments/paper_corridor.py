@@ -79,6 +79,15 @@ def one_seed(
         return rows
 
 
+def _groups(rows: list[dict]):
+    """(sensors, backend, their rows) in table order, for the groups that have rows."""
+    for sensors in SENSORS:
+        for backend in BACKENDS:
+            rs = [r for r in rows if r["backend"] == backend and r["sensors"] == sensors]
+            if rs:
+                yield sensors, backend, rs
+
+
 def summarise(rows: list[dict]) -> str:
     out = [
         "| backend | sensors | kept track | ATE RMSE (m) | max error (m) | final error (m) | "
@@ -86,28 +95,24 @@ def summarise(rows: list[dict]) -> str:
         "real-time factor |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for sensors in SENSORS:
-        for backend in BACKENDS:
-            rs = [r for r in rows if r["backend"] == backend and r["sensors"] == sensors]
-            if not rs:
-                continue
-            ate = np.array([r["ate"]["rmse"] for r in rs])
-            mx = np.array([r["ate"]["max"] for r in rs])
-            fin = np.array([r["final_pose_error"]["position_m"] for r in rs])
-            nees = np.array([r.get("nees", {}).get("mean", np.nan) for r in rs])
-            band = np.array([r.get("nees", {}).get("within_95", np.nan) for r in rs])
-            lm = np.array([r["landmarks_total"] for r in rs])
-            kinds = [
-                np.mean([r["landmarks"].get(k, 0) for r in rs]) for k in ("line", "corner", "point")
-            ]
-            rt = np.array([r["realtime_factor"] for r in rs])
-            kept = np.mean(mx < KEPT_TRACK)
-            out.append(
-                f"| {backend} | {sensors} | {kept:.0%} | {ate.mean():.3f} +- {ate.std():.3f} | "
-                f"{mx.mean():.3f} (worst {mx.max():.2f}) | {fin.mean():.3f} | "
-                f"{np.nanmedian(nees):.1f} | {np.nanmean(band):.0%} | {lm.mean():.0f} | "
-                f"{kinds[0]:.0f} / {kinds[1]:.0f} / {kinds[2]:.0f} | {rt.mean():.1f} |"
-            )
+    for sensors, backend, rs in _groups(rows):
+        ate = np.array([r["ate"]["rmse"] for r in rs])
+        mx = np.array([r["ate"]["max"] for r in rs])
+        fin = np.array([r["final_pose_error"]["position_m"] for r in rs])
+        nees = np.array([r.get("nees", {}).get("mean", np.nan) for r in rs])
+        band = np.array([r.get("nees", {}).get("within_95", np.nan) for r in rs])
+        lm = np.array([r["landmarks_total"] for r in rs])
+        kinds = [
+            np.mean([r["landmarks"].get(k, 0) for r in rs]) for k in ("line", "corner", "point")
+        ]
+        rt = np.array([r["realtime_factor"] for r in rs])
+        kept = np.mean(mx < KEPT_TRACK)
+        out.append(
+            f"| {backend} | {sensors} | {kept:.0%} | {ate.mean():.3f} +- {ate.std():.3f} | "
+            f"{mx.mean():.3f} (worst {mx.max():.2f}) | {fin.mean():.3f} | "
+            f"{np.nanmedian(nees):.1f} | {np.nanmean(band):.0%} | {lm.mean():.0f} | "
+            f"{kinds[0]:.0f} / {kinds[1]:.0f} / {kinds[2]:.0f} | {rt.mean():.1f} |"
+        )
     cal = [r for r in rows if r.get("calibration")]
     if cal:
         out += [
@@ -118,23 +123,17 @@ def summarise(rows: list[dict]) -> str:
             "| within 3 sigma |",
             "|---|---|---|---|---|---|---|---|",
         ]
-        for sensors in SENSORS:
-            for backend in BACKENDS:
-                rs = [r for r in cal if r["backend"] == backend and r["sensors"] == sensors]
-                if not rs:
-                    continue
-                est = 1e3 * np.array([r["calibration"]["estimate"] for r in rs])
-                sig = 1e3 * np.array([r["calibration"]["sigma"] or [np.nan] * 3 for r in rs])
-                tru = 1e3 * np.array([r["calibration"]["truth"] for r in rs])
-                inside = np.mean(np.all(np.abs(est - tru) < 3 * sig, axis=1))
-                cells = [
-                    f"{m:.2f} +- {d:.2f}" for m, d in zip(est.mean(0), est.std(0), strict=True)
-                ]
-                out.append(
-                    f"| {backend} | {sensors} | {' | '.join(cells)} | "
-                    f"{', '.join(f'{v:.2f}' for v in np.nanmean(sig, 0))} | "
-                    f"{', '.join(f'{v:.1f}' for v in tru.mean(0))} | {inside:.0%} |"
-                )
+        for sensors, backend, rs in _groups(cal):
+            est = 1e3 * np.array([r["calibration"]["estimate"] for r in rs])
+            sig = 1e3 * np.array([r["calibration"]["sigma"] or [np.nan] * 3 for r in rs])
+            tru = 1e3 * np.array([r["calibration"]["truth"] for r in rs])
+            inside = np.mean(np.all(np.abs(est - tru) < 3 * sig, axis=1))
+            cells = [f"{m:.2f} +- {d:.2f}" for m, d in zip(est.mean(0), est.std(0), strict=True)]
+            out.append(
+                f"| {backend} | {sensors} | {' | '.join(cells)} | "
+                f"{', '.join(f'{v:.2f}' for v in np.nanmean(sig, 0))} | "
+                f"{', '.join(f'{v:.1f}' for v in tru.mean(0))} | {inside:.0%} |"
+            )
     odo = np.array(
         [
             r["ate_odometry"]["rmse"]

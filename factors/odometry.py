@@ -234,29 +234,14 @@ def propagate(
     times: ArrayLike | None = None,
     span: tuple[float, float] | None = None,
     last_sample: float | None = None,
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """Integrate samples from ``start`` (x, y, th) with covariance ``P0`` (world axes) and
     propagate the covariance by eq 4 (and the motion error model). With the samples'
     ``times``, the interval's ``span`` (t0, t1) and the ``last_sample`` time before it,
     odometry holes (:func:`_gaps`) add :func:`hole_noise` where they lie. Returns the final
-    (x, y, th) and its 3x3 covariance."""
-    pose, P, _ = propagate_calibrated(lr, ll, params, start, P0, times, span, last_sample)
-    return pose, P
-
-
-def propagate_calibrated(
-    lr: ArrayLike,
-    ll: ArrayLike,
-    params: OdometryParams,
-    start: ArrayLike = (0.0, 0.0, 0.0),
-    P0: ArrayLike | None = None,
-    times: ArrayLike | None = None,
-    span: tuple[float, float] | None = None,
-    last_sample: float | None = None,
-) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """:func:`propagate`, and the 3x3 Jacobian of the final (x, y, th) w.r.t. the
-    calibration errors c = (e_r, e_l, e_b) at c = 0: the relative errors of the right and
-    left wheel distances and of the wheelbase (true L_r = (1 + e_r) L_r, etc.)."""
+    (x, y, th), its 3x3 covariance and the 3x3 Jacobian of (x, y, th) w.r.t. the calibration
+    errors c = (e_r, e_l, e_b) at c = 0: the relative errors of the right and left wheel
+    distances and of the wheelbase (true L_r = (1 + e_r) L_r, etc.)."""
     lr = np.atleast_1d(np.asarray(lr, dtype=float))
     ll = np.atleast_1d(np.asarray(ll, dtype=float))
     _check_distances(lr, ll)
@@ -299,7 +284,7 @@ class Preintegrated:
     n_samples: int
     hole_seconds: float = 0.0  # odometry holes in the interval (s), see OdometryParams
     # wheel odometry: d(x, y, theta)/d(e_r, e_l, e_b) in keyframe 1's axes at zero calibration
-    # error (:func:`propagate_calibrated`); None for a motion not measured by the wheels
+    # error (:func:`propagate`); None for a motion not measured by the wheels
     calibration_jacobian: NDArray[np.float64] | None = None
 
     def factor(self, key1: int, key2: int) -> gtsam.BetweenFactorPose2:
@@ -343,9 +328,7 @@ def preintegrate(
     if lr.size == 0:
         P = np.eye(3) * COVARIANCE_FLOOR + (hole_noise(hole, params) if hole else 0.0)
         return Preintegrated(gtsam.Pose2(), P, P, 0, hole, np.zeros((3, 3)))
-    (x, y, th), P, Jc = propagate_calibrated(
-        lr, ll, params, times=times, span=span, last_sample=last_sample
-    )
+    (x, y, th), P, Jc = propagate(lr, ll, params, times=times, span=span, last_sample=last_sample)
     P = P + np.eye(3) * COVARIANCE_FLOOR
     return Preintegrated(
         gtsam.Pose2(x, y, wrap_angle(th)),

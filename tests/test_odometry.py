@@ -79,7 +79,7 @@ def monte_carlo():
 def test_monte_carlo_pose_covariance(monte_carlo):
     """Sample covariance of the end pose against eq 4 propagation: every std within 10 %."""
     lr, ll, ends = monte_carlo
-    mean, P = propagate(lr, ll, PARAMS)
+    mean, P, _ = propagate(lr, ll, PARAMS)
     nominal = integrate_poses(lr, ll, PARAMS.wheelbase)[-1]
     np.testing.assert_allclose(mean, nominal, atol=1e-12)
     assert abs(mean[2]) > 1.0  # the path turns: the test exercises the heading coupling
@@ -233,7 +233,7 @@ def test_monte_carlo_motion_error_model():
     rng = np.random.default_rng(77)
     lr, ll = nominal_path()
     ends = sample_paths(lr, ll, ALPHA, N_PATHS, rng)
-    mean, P = propagate(lr, ll, ALPHA)
+    mean, P, _ = propagate(lr, ll, ALPHA)
     S = np.cov((ends - mean).T)
     np.testing.assert_allclose(np.sqrt(np.diag(S)), np.sqrt(np.diag(P)), rtol=0.10)
     assert np.all(np.abs(np.linalg.eigvals(np.linalg.solve(P, S)).real - 1.0) < 0.15)

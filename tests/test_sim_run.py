@@ -84,7 +84,7 @@ def test_odometry_drift_matches_error_model():
             run.ticks[:, 0], run.ticks[:, 1], odo.metres_per_tick_right, odo.metres_per_tick_left
         )
         start = (0.0, 0.0, 0.0)
-        end, P = propagate(lr, ll, params, start=start)
+        end, P, _ = propagate(lr, ll, params, start=start)
         np.testing.assert_allclose(end, integrate_poses(lr, ll, odo.wheelbase, start)[-1])
         e = run.poses[-1] - end
         e[2] = (e[2] + math.pi) % (2 * math.pi) - math.pi

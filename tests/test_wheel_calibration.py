@@ -20,7 +20,7 @@ from factors.odometry import (
     calibrated_error,
     calibrated_odometry_factor,
     preintegrate,
-    propagate_calibrated,
+    propagate,
 )
 from fgslam import evaluation
 from fgslam.config import load_config, with_scanmatch
@@ -49,9 +49,9 @@ def test_preintegration_calibration_jacobian_matches_finite_differences(seed):
 
     def end(c):
         p = OdometryParams(PARAMS.wheelbase * (1 + c[2]), PARAMS.k_r, PARAMS.k_l, PARAMS.k_d)
-        return propagate_calibrated(lr * (1 + c[0]), ll * (1 + c[1]), p)[0]
+        return propagate(lr * (1 + c[0]), ll * (1 + c[1]), p)[0]
 
-    _, _, Jc = propagate_calibrated(lr, ll, PARAMS)
+    _, _, Jc = propagate(lr, ll, PARAMS)
     np.testing.assert_allclose(Jc, numeric_jacobian(end, np.zeros(3)), atol=1e-7, rtol=1e-5)
     pre = preintegrate(lr, ll, PARAMS)
     np.testing.assert_allclose(pre.calibration_jacobian, Jc)
@@ -66,11 +66,11 @@ def test_calibration_jacobian_of_a_straight_line_and_a_turn_on_the_spot():
     phi (e_r + e_l) / 2 - phi e_b, and a scale difference drives it along its heading
     (x, y depend on e_r - e_l only)."""
     n, step = 100, 0.01
-    _, _, J = propagate_calibrated(np.full(n, step), np.full(n, step), PARAMS)
+    _, _, J = propagate(np.full(n, step), np.full(n, step), PARAMS)
     L, D = n * step, PARAMS.wheelbase
     np.testing.assert_allclose(J[0], [L / 2, L / 2, 0.0], atol=1e-12)
     np.testing.assert_allclose(J[2], [L / D, -L / D, 0.0], atol=1e-12)
-    _, _, J = propagate_calibrated(np.full(n, step), np.full(n, -step), PARAMS)
+    _, _, J = propagate(np.full(n, step), np.full(n, -step), PARAMS)
     phi = 2 * L / D
     np.testing.assert_allclose(J[2], [phi / 2, phi / 2, -phi], atol=1e-12)
     np.testing.assert_allclose(J[:2, 2], 0.0, atol=1e-12)
@@ -174,12 +174,12 @@ def test_calibration_uncertainty_spreads_the_motion_as_the_jacobian_says():
     prior of 1 % each; the spread of the end poses matches J_c Sigma_c J_c^T."""
     rng = np.random.default_rng(7)
     lr, ll = random_samples(rng, 80)
-    _, _, Jc = propagate_calibrated(lr, ll, PARAMS)
+    _, _, Jc = propagate(lr, ll, PARAMS)
     S = np.diag([0.01, 0.01, 0.01]) ** 2
     ends = []
     for c in rng.multivariate_normal(np.zeros(3), S, 4000):
         p = OdometryParams(PARAMS.wheelbase * (1 + c[2]), 0.0, 0.0, 0.0)
-        ends.append(propagate_calibrated(lr * (1 + c[0]), ll * (1 + c[1]), p)[0])
+        ends.append(propagate(lr * (1 + c[0]), ll * (1 + c[1]), p)[0])
     C = np.cov(np.array(ends).T)
     want = Jc @ S @ Jc.T
     np.testing.assert_allclose(np.sqrt(np.diag(C)), np.sqrt(np.diag(want)), rtol=0.06)
