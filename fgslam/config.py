@@ -189,6 +189,10 @@ class FrontendConfig:
     scales its covariance (:func:`fgslam.frontend.fits.residual_scale`), 0 off. Off for the
     PLS, whose range model the simulator reproduces; the readers' derived configurations
     (real logs) set 0.99.
+
+    ``corners``: a right-angle corner is fitted to the points of its two lines; "with-lines"
+    (the paper) keeps both lines as measurements too, "replace-lines" keeps the corner alone
+    (no point counted twice), "off" keeps the lines alone.
     """
 
     min_points: int = 0
@@ -197,6 +201,7 @@ class FrontendConfig:
     max_line_range: float = 0.0
     map_max_range: float = 0.0
     residual_level: float = 0.0
+    corners: str = "with-lines"
 
 
 @dataclass(frozen=True)
@@ -539,6 +544,7 @@ def from_dict(data: dict[str, Any], source: str = "<dict>") -> RobotConfig:
 
 
 CALIBRATION_CHOICES = ("off", "wheels")
+CORNER_CHOICES = ("with-lines", "replace-lines", "off")
 
 
 def _check_consistency(cfg: RobotConfig, src: str) -> None:
@@ -550,6 +556,11 @@ def _check_consistency(cfg: RobotConfig, src: str) -> None:
             )
     if not 0.0 < cfg.scanmatch.motion_gate_p < 1.0:
         raise ConfigError(f"{src}: key 'scanmatch.motion_gate_p': expected a value in (0, 1)")
+    if cfg.frontend.corners not in CORNER_CHOICES:
+        raise ConfigError(
+            f"{src}: key 'frontend.corners': expected one of {', '.join(CORNER_CHOICES)}, "
+            f"got {cfg.frontend.corners!r}"
+        )
     if cfg.odometry.calibration not in CALIBRATION_CHOICES:
         raise ConfigError(
             f"{src}: key 'odometry.calibration': expected one of "

@@ -13,6 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from factors.geometry import wrap_angle
+from fgslam.config import ConfigError, from_dict
 from fgslam.events import LaserScan, OdometryEvent, SonarEcho, SonarReading
 from fgslam.frontend.features import End
 from fgslam.frontend.fits import line_ranges
@@ -357,3 +358,34 @@ def test_fusion_and_points_on_the_simulated_corridor():
     assert f["sonar_phantoms_removed"] > 0 and f["sonar_clusters_invisible"] > 0
     assert l.get("points", 0) == 0 and "fused_lines" not in l
     assert l["lines"] > 100 and l["corners"] > 10
+
+
+def test_corner_and_its_lines_counted_once_on_request():
+    """``corners``: "with-lines" (the paper) gives the room's corners and every wall;
+    "replace-lines" the same corners without the walls they were fitted to (no point
+    measured twice); "off" the walls and no corner."""
+    from fgslam.frontend.pipeline import FrontEndParams
+
+    _, ranges = scene_events(ROOM, seed=4, sonar=False)
+    out = {}
+    for mode in ("with-lines", "replace-lines", "off"):
+        fe = FrontEnd(CFG, "laser", FrontEndParams(corners=mode))
+        feats = fe.process_scan(LaserScan(1.0, ranges), 0.0, 0.0).features
+        out[mode] = (
+            [f for f in feats if f.kind == "line"],
+            [f for f in feats if f.kind == "corner"],
+        )
+    lines, corners = out["with-lines"]
+    assert len(corners) >= 1 and len(lines) >= 3
+    r_lines, r_corners = out["replace-lines"]
+    assert [c.z.tolist() for c in r_corners] == [c.z.tolist() for c in corners]
+    kept = {tuple(f.z) for f in r_lines}
+    assert kept < {tuple(f.z) for f in lines}
+    vertices = [c.z[1] * np.array([math.cos(c.z[0]), math.sin(c.z[0])]) for c in corners]
+    for f in lines:  # a wall goes exactly when one of its ends is a corner's vertex
+        at_corner = min(np.hypot(*(e - v)) for e in f.endpoints for v in vertices) < 0.35
+        assert (tuple(f.z) not in kept) == at_corner, f.z
+    o_lines, o_corners = out["off"]
+    assert not o_corners and [f.z.tolist() for f in o_lines] == [f.z.tolist() for f in lines]
+    with pytest.raises(ConfigError, match=r"frontend\.corners"):
+        from_dict({**CFG.to_dict(), "frontend": {**CFG.to_dict()["frontend"], "corners": "x"}})

@@ -72,6 +72,7 @@ class FrontEndParams:
     min_cluster: int = 3  # echoes in a sonar-only point cluster
     sonar_step: float = 0.2  # sonar-only logs without laser: output step (s)
     residual_level: float | None = None  # fits: residual covariance scaling (None: off)
+    corners: str = "with-lines"  # or "replace-lines", "off": FrontendConfig.corners
 
 
 def frontend_params(cfg: RobotConfig, base: FrontEndParams | None = None) -> FrontEndParams:
@@ -89,7 +90,9 @@ def frontend_params(cfg: RobotConfig, base: FrontEndParams | None = None) -> Fro
         outlier=th["outlier"],
         spread=th["spread"],
     )
-    return dataclasses.replace(base, segment=seg, residual_level=th["residual_level"])
+    return dataclasses.replace(
+        base, segment=seg, residual_level=th["residual_level"], corners=cfg.frontend.corners
+    )
 
 
 class FrontEnd:
@@ -216,8 +219,13 @@ class FrontEnd:
             segs, rejected = segment_scan(phi, r, self.p.segment, near, dist)
             stats.update({f"segments_rejected_{k}": v for k, v in rejected.items()})
             lines = [self._line(s, phi, r, pts, stats) for s in segs]
-            corners = self._corners(segs, lines, phi, r, clusters, pts, stats)
-            for f in [f for f in lines if f is not None] + corners:
+            corners = []
+            if self.p.corners != "off":
+                corners = self._corners(segs, lines, phi, r, clusters, pts, stats)
+            if self.p.corners == "replace-lines":  # a corner's points count once, in it
+                for k, _ in corners:
+                    lines[k] = lines[k + 1] = None
+            for f in [f for f in lines if f is not None] + [c for _, c in corners]:
                 f.cov = time_registration_inflation(
                     f.cov,
                     LINE_ANGULAR if f.kind == "line" else CORNER_ANGULAR,
@@ -315,7 +323,8 @@ class FrontEnd:
             f.sonar_support = int(np.sum(_seg_dist(pts.xy, f.endpoints) < self.p.support_dist))
         return f
 
-    def _corners(self, segs, lines, phi, r, clusters, pts, stats) -> list[Feature]:
+    def _corners(self, segs, lines, phi, r, clusters, pts, stats) -> list[tuple[int, Feature]]:
+        """Right-angle corners of consecutive lines k, k + 1, as (k, corner)."""
         out = []
         for k in range(len(segs) - 1):
             s1, s2, l1, l2 = segs[k], segs[k + 1], lines[k], lines[k + 1]
@@ -390,7 +399,7 @@ class FrontEnd:
                         )
                     )
                 )
-            out.append(f)
+            out.append((k, f))
         return out
 
     # ------------------------------------------------------------------ sonar features
