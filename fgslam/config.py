@@ -192,7 +192,10 @@ class FrontendConfig:
 
     ``corners``: a right-angle corner is fitted to the points of its two lines; "with-lines"
     (the paper) keeps both lines as measurements too, "replace-lines" keeps the corner alone
-    (no point counted twice), "off" keeps the lines alone.
+    (no point counted twice), "off" keeps the lines alone. ``points_from``: a sonar cluster
+    that ends a laser line gives a point feature from its echo nearest its centre,
+    "any-echo" (as before) even one already fused into a line or corner of the scan,
+    "unfused-echoes" only from the others (an echo counts once).
     """
 
     min_points: int = 0
@@ -202,6 +205,7 @@ class FrontendConfig:
     map_max_range: float = 0.0
     residual_level: float = 0.0
     corners: str = "with-lines"
+    points_from: str = "any-echo"
 
 
 @dataclass(frozen=True)
@@ -545,6 +549,7 @@ def from_dict(data: dict[str, Any], source: str = "<dict>") -> RobotConfig:
 
 CALIBRATION_CHOICES = ("off", "wheels")
 CORNER_CHOICES = ("with-lines", "replace-lines", "off")
+POINTS_FROM_CHOICES = ("any-echo", "unfused-echoes")
 
 
 def _check_consistency(cfg: RobotConfig, src: str) -> None:
@@ -560,6 +565,11 @@ def _check_consistency(cfg: RobotConfig, src: str) -> None:
         raise ConfigError(
             f"{src}: key 'frontend.corners': expected one of {', '.join(CORNER_CHOICES)}, "
             f"got {cfg.frontend.corners!r}"
+        )
+    if cfg.frontend.points_from not in POINTS_FROM_CHOICES:
+        raise ConfigError(
+            f"{src}: key 'frontend.points_from': expected one of "
+            f"{', '.join(POINTS_FROM_CHOICES)}, got {cfg.frontend.points_from!r}"
         )
     if cfg.odometry.calibration not in CALIBRATION_CHOICES:
         raise ConfigError(

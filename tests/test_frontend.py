@@ -389,3 +389,42 @@ def test_corner_and_its_lines_counted_once_on_request():
     assert not o_corners and [f.z.tolist() for f in o_lines] == [f.z.tolist() for f in lines]
     with pytest.raises(ConfigError, match=r"frontend\.corners"):
         from_dict({**CFG.to_dict(), "frontend": {**CFG.to_dict()["frontend"], "corners": "x"}})
+
+
+def test_sonar_points_from_unfused_echoes_only_on_request():
+    """``points_from``: with "any-echo" (as before) point features reuse echoes already fused
+    into a line or corner of the same scan (the issue counted 148 of 180); with
+    "unfused-echoes" none does, and the points that remain come from other echoes."""
+    from fgslam.config import load_config
+    from fgslam.frontend.pipeline import FrontEndParams
+    from fgslam.sim.simulate import events, plan_run
+    from fgslam.sim.world import load_world
+
+    cfg, w = load_config(), load_world("corridor")
+    evs = list(events(w, cfg, plan_run(w, cfg, seed=2, duration=40.0)))
+
+    class Probe(FrontEnd):
+        """Records, per scan, the echoes fused and the echo each point was made of."""
+
+        def _fuse(self, feats, pts, slot, stats):
+            self.used = super()._fuse(feats, pts, slot, stats)
+            return self.used
+
+        def _point_from_cluster(self, c, pts, slot):
+            f = super()._point_from_cluster(c, pts, slot)
+            if f is not None:
+                members = c.members[slot[c.members]]
+                i = members[np.argmin(np.hypot(*(pts.xy[members] - c.centre).T))]
+                self.reused.append(bool(self.used[i]))
+            return f
+
+    reused = {}
+    for mode in ("any-echo", "unfused-echoes"):
+        fe = Probe(cfg, "fused", FrontEndParams(points_from=mode))
+        fe.reused = []
+        for ev in evs:
+            fe.add(ev)
+        fe.finish()
+        reused[mode] = fe.reused
+    assert sum(reused["any-echo"]) > 5
+    assert reused["unfused-echoes"] and not any(reused["unfused-echoes"])

@@ -73,6 +73,7 @@ class FrontEndParams:
     sonar_step: float = 0.2  # sonar-only logs without laser: output step (s)
     residual_level: float | None = None  # fits: residual covariance scaling (None: off)
     corners: str = "with-lines"  # or "replace-lines", "off": FrontendConfig.corners
+    points_from: str = "any-echo"  # or "unfused-echoes": FrontendConfig.points_from
 
 
 def frontend_params(cfg: RobotConfig, base: FrontEndParams | None = None) -> FrontEndParams:
@@ -91,7 +92,11 @@ def frontend_params(cfg: RobotConfig, base: FrontEndParams | None = None) -> Fro
         spread=th["spread"],
     )
     return dataclasses.replace(
-        base, segment=seg, residual_level=th["residual_level"], corners=cfg.frontend.corners
+        base,
+        segment=seg,
+        residual_level=th["residual_level"],
+        corners=cfg.frontend.corners,
+        points_from=cfg.frontend.points_from,
     )
 
 
@@ -237,7 +242,9 @@ class FrontEnd:
         if use_sonar and pts is not None:
             slot = np.abs(pts.t - t) <= self.half_slot
             if use_laser:
-                self._fuse(feats, pts, slot, stats)
+                used = self._fuse(feats, pts, slot, stats)
+                if self.p.points_from == "unfused-echoes":  # an echo counts once
+                    slot = slot & ~used
                 feats.extend(self._points(segs, clusters, pts, slot, stats))
             else:
                 feats.extend(self._sonar_only(clusters, pts, slot, stats))
@@ -417,7 +424,10 @@ class FrontEnd:
         J = np.array([[-rr * math.sin(a), math.cos(a)], [rr * math.cos(a), math.sin(a)]])
         return J @ self.sonar_model.covariance(rr) @ J.T
 
-    def _fuse(self, feats: list[Feature], pts: SonarPoints, slot, stats) -> None:
+    def _fuse(self, feats: list[Feature], pts: SonarPoints, slot, stats) -> NDArray[np.bool_]:
+        """Fuse the slot's sonar planes into the laser lines and its corner echoes into the
+        laser corners they agree with; returns which echoes were fused."""
+        used = np.zeros(len(pts.xy), dtype=bool)
         planes = np.flatnonzero(slot & (pts.kind == 0))
         corners = np.flatnonzero(slot & (pts.kind == 1))
         for f in feats:
@@ -433,6 +443,7 @@ class FrontEnd:
                     zs = f.z + e  # the sonar line in the laser line's (alpha, d) form
                     f.z, f.cov = fuse(f.z, f.cov, zs, Cs, angular=(True, False))
                     f.source = "fused"
+                    used[i] = True
                     stats["fused_lines"] += 1
             elif f.kind == "corner":
                 for i in corners:
@@ -443,7 +454,9 @@ class FrontEnd:
                         continue
                     f.z, f.cov = fuse(f.z, f.cov, f.z[:2] + e, Cs, angular=(True, False), dims=2)
                     f.source = "fused"
+                    used[i] = True
                     stats["fused_corners"] += 1
+        return used
 
     def _point_from_cluster(self, c: Cluster, pts: SonarPoints, slot) -> Feature | None:
         members = c.members[slot[c.members]]
