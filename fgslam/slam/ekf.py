@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.stats import chi2
 
-from factors.geometry import wrap_angle
+from factors.geometry import wrap_angle, wrap_angles
 from factors.odometry import Preintegrated, fuse_motions, link_motions, with_calibration
 from fgslam.frontend.features import Feature
 from fgslam.slam import models
@@ -54,6 +54,7 @@ class EkfBackend(Backend):
         self.x = np.zeros(3)
         self.P = np.zeros((3, 3))
         self.index: dict[int, tuple[int, str]] = {}  # landmark id -> (offset, kind)
+        self._angles = np.array([2])  # the state's angles (wrapped after each update)
 
     def start(self, t: float, pose: NDArray[np.float64], cov: NDArray[np.float64]) -> None:
         self.x = np.array(pose, dtype=float)
@@ -128,17 +129,20 @@ class EkfBackend(Backend):
         e: NDArray[np.float64],
         H: NDArray[np.float64],
         R: NDArray[np.float64],
+        cols: NDArray[np.intp],
         gate: bool = False,
         joseph: bool = False,
     ) -> bool:
-        """EKF update for residual e = prediction - measurement with Jacobian H. With
-        ``joseph`` (where R is tiny: the merge pseudo-measurement) in Joseph form
-        P' = (I - KH) P (I - KH)^T + K R K^T, expanded so that it costs O(n^2 m):
+        """EKF update for residual e = prediction - measurement with Jacobian H, given by its
+        nonzero columns: ``H`` (m x len(cols)) holds the columns ``cols`` of the state (a
+        feature touches the pose and one landmark), so P H^T costs O(n m k), not O(n^2 m);
+        the covariance update itself is O(n^2 m). With ``joseph`` (where R is tiny: the merge
+        pseudo-measurement) in Joseph form P' = (I - KH) P (I - KH)^T + K R K^T, expanded:
         P - K (PH^T)^T - PH^T K^T + K S K^T; else P - K S K^T (half the cost). With
         ``gate``, an innovation outside the chi-square gate is not applied (returns False)."""
         P = self.P
-        PHt = P @ H.T
-        S = H @ PHt + R
+        PHt = P[:, cols] @ H.T
+        S = H @ PHt[cols] + R
         if gate:
             try:
                 d2 = float(e @ np.linalg.solve(S, e))
@@ -155,21 +159,21 @@ class EkfBackend(Backend):
         else:
             self.P = P - K @ (S @ K.T)
         self.P = 0.5 * (self.P + self.P.T)
-        self.x[2] = wrap_angle(self.x[2])
-        for o, kind in self.index.values():
-            for i, angle in enumerate(models.ANGULAR[kind]):
-                if angle:
-                    self.x[o + i] = wrap_angle(self.x[o + i])
+        self.x[self._angles] = wrap_angles(self.x[self._angles])
         return True
+
+    def _index_angles(self) -> None:
+        ang = [2]
+        for o, kind in self.index.values():
+            ang.extend(o + i for i, a in enumerate(models.ANGULAR[kind]) if a)
+        self._angles = np.array(sorted(ang), dtype=np.intp)
 
     def observe(self, lid: int, f: Feature) -> None:
         o, kind = self.index[lid]
         n = models.DIM[kind]
         e, Hx, Hl = models.residual(kind, self.x[:3], self.x[o : o + n], f.z)
-        H = np.zeros((len(e), self.x.size))
-        H[:, :3] = Hx
-        H[:, o : o + n] = Hl
-        self._update(e, H, f.cov, gate=True)
+        cols = np.r_[0:3, o : o + n]
+        self._update(e, np.hstack([Hx, Hl]), f.cov, cols, gate=True)
 
     def add_landmark(self, lid: int, f: Feature) -> None:
         kind = f.kind
@@ -187,6 +191,7 @@ class EkfBackend(Backend):
         self.P = newP
         self.x = np.concatenate([self.x, lm])
         self.index[lid] = (n0, kind)
+        self._index_angles()
 
     def merge(self, keep: int, drop: int) -> None:
         ok, kind = self.index[keep]
@@ -194,16 +199,15 @@ class EkfBackend(Backend):
         n = models.DIM[kind]
         a, b = self.x[ok : ok + n], self.x[od : od + n]
         e, Hb = models.difference(kind, a, b)
-        H = np.zeros((n, self.x.size))
-        H[:, ok : ok + n] = np.eye(n)
-        H[:, od : od + n] = Hb
-        self._update(e, H, np.eye(n) * 1e-10, joseph=True)
+        cols = np.r_[ok : ok + n, od : od + n]
+        self._update(e, np.hstack([np.eye(n), Hb]), np.eye(n) * 1e-10, cols, joseph=True)
         keepmask = np.ones(self.x.size, dtype=bool)
         keepmask[od : od + n] = False
         self.x = self.x[keepmask]
         self.P = self.P[np.ix_(keepmask, keepmask)]
         del self.index[drop]
         self.index = {lid: (o - n if o > od else o, k) for lid, (o, k) in self.index.items()}
+        self._index_angles()
 
     def commit(self) -> None:
         self._record(self._pending_t)
