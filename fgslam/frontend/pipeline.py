@@ -367,7 +367,9 @@ class FrontEnd:
             if abs(wrap_angle(g - phi_c)) > math.pi / 2:
                 g += math.pi
             convex = wrap_angle(a2 - g) < 0
-            sl = slice(s1.first, s2.last + 1)
+            # the two lines' beams only: beams between them (an occluder's shadow, a piece
+            # too short for a line) are not the corner's
+            sl = np.r_[s1.first : s1.last + 1, s2.first : s2.last + 1]
             try:
                 fit = fit_corner(
                     phi[sl],
