@@ -609,6 +609,14 @@ def _add_scanmatch_arguments(p: argparse.ArgumentParser) -> None:
         "wheelbase; report.json: calibration) or take the configuration's as exact "
         "(default: the configuration's [odometry] calibration)",
     )
+    g.add_argument(
+        "--sonar-timing",
+        choices=["scan-frame", "own-time"],
+        help="iSAM2 and batch: attach each sonar point or plane measurement to the pose at "
+        "its reading's own time (interpolated between keyframes) or move it by odometry "
+        "into the laser scan's frame as the paper does (the EKF always does the latter; "
+        "default: the configuration's [sonar] timing)",
+    )
 
 
 def _config_options(args: argparse.Namespace) -> dict[str, dict]:
@@ -620,6 +628,7 @@ def _config_options(args: argparse.Namespace) -> dict[str, dict]:
             "loop_closures": getattr(args, "loops", None),
         },
         "odometry": {"calibration": getattr(args, "calibration", None)},
+        "sonar": {"timing": getattr(args, "sonar_timing", None)},
     }
 
 
