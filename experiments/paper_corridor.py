@@ -37,6 +37,7 @@ from fgslam import evaluation
 from fgslam.config import load_config, with_options
 from fgslam.logfile import LogReader
 from fgslam.sim import simulate_to_log
+from fgslam.sim.sensors import SimParams
 from fgslam.sim.world import load_world
 from fgslam.slam.outputs import report_dict
 from fgslam.slam.runner import BACKENDS, SENSORS, run_backends
@@ -58,10 +59,15 @@ def one_seed(
     corners: str | None = None,
     points_from: str | None = None,
     sonar_timing: str | None = None,
+    world: str = "corridor",
+    sim_params: SimParams | None = None,
 ) -> list[dict]:
+    """Simulate ``world`` (with the simulator's true errors ``sim_params``, default its
+    defaults) for ``seed`` and run every backend in each of ``sensors_list``: one report
+    row each (report.json's, plus the seed, the options and the error curve)."""
     with tempfile.TemporaryDirectory() as d:
         log = Path(d) / "run.log.gz"
-        simulate_to_log(load_world("corridor"), load_config(), log, seed)
+        simulate_to_log(load_world(world), load_config(), log, seed, params=sim_params)
         reader = LogReader(log)
         true_map = reader.meta["true_map"]
         rows = []
