@@ -50,7 +50,6 @@ def job(world: str, level: float, seed: int) -> list[dict]:
     rows = one_seed(seed, SENSORS, calibration="off", world=world, sim_params=sim)
     for r in rows:
         r["world"], r["level"] = world, level
-        r.pop("error_curve", None)
     return rows
 
 
@@ -93,7 +92,8 @@ def summarise(rows: list[dict]) -> str:
 
 def plot(rows: list[dict], path: Path) -> None:
     worlds = list(dict.fromkeys(r["world"] for r in rows))
-    fig, axs = plt.subplots(1, len(worlds), figsize=(6 * len(worlds), 4.2), squeeze=False)
+    top = max(r["level"] for r in rows)
+    fig, axs = plt.subplots(2, len(worlds), figsize=(6 * len(worlds), 8.4), squeeze=False)
     styles = {"laser": "--", "fused": "-"}
     colors = {"ekf": "tab:red", "isam2": "tab:blue", "batch": "tab:green"}
     for ax, world in zip(axs[0], worlds, strict=True):
@@ -119,6 +119,19 @@ def plot(rows: list[dict], path: Path) -> None:
         ax.set_title(f"{world}: share of seeds that kept track")
     axs[0][0].set_ylabel(f"kept track (max error < {KEPT_TRACK} m)")
     axs[0][0].legend(fontsize=8)
+    for ax, world in zip(axs[1], worlds, strict=True):  # error over time, the highest level
+        for r in rows:
+            if (r["world"], r["level"]) != (world, top) or r["backend"] == "batch":
+                continue
+            t, e = r["error_curve"]
+            ax.plot(t, e, styles[r["sensors"]], lw=0.7, alpha=0.8, color=colors[r["backend"]])
+        for sensors, backend in itertools.product(SENSORS, ("ekf", "isam2")):
+            ax.plot([], [], styles[sensors], color=colors[backend], label=f"{sensors} {backend}")
+        ax.axhline(KEPT_TRACK, color="k", lw=0.5, ls=":")
+        ax.set_xlabel("time (s)")
+        ax.set_title(f"{world}, odometry error x{top:g}: position error, every seed")
+    axs[1][0].set_ylabel("position error (m)")
+    axs[1][0].legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
