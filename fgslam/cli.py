@@ -34,6 +34,7 @@ Typical use:
 Frames follow REP-103 (x forward, y left, yaw counter-clockwise); units are SI.
 """
 
+WORLD_HELP = "built-in world (corridor, corridor-oneway) or a world JSON file (default corridor)"
 CONFIG_OVER_LOG_HELP = (
     "TOML file whose keys override the log's robot configuration (or the built-in one for "
     "logs that carry none), key by key; it must not contradict the log (beam count, sonar "
@@ -770,7 +771,7 @@ def build_parser() -> argparse.ArgumentParser:
             "given seed."
         ),
     )
-    p.add_argument("--world", default="corridor", help="built-in world name or world JSON file")
+    p.add_argument("--world", default="corridor", help=WORLD_HELP)
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument(
         "--duration", type=float, help="stop after this many seconds (default: whole route)"
@@ -979,7 +980,7 @@ def build_parser() -> argparse.ArgumentParser:
             "pulls) can be injected."
         ),
     )
-    p.add_argument("--world", default="corridor", help="built-in world name or world JSON file")
+    p.add_argument("--world", default="corridor", help=WORLD_HELP)
     p.add_argument("--seed", type=int, default=0, help="random seed of the run (default 0)")
     p.add_argument("--speed", type=float, default=1.0, metavar="K", help=speed_help)
     p.add_argument(
