@@ -13,7 +13,7 @@ of seeds that kept track (maximum position error below 0.5 m) and the mean ATE; 
 experiments/paper_laser_claim.png and the rows to experiments/out/paper_laser_claim.json.
 
 Run: python experiments/paper_laser_claim.py [--seeds 4] [--levels 1 2 4] [--workers 2]
-[--worlds corridor corridor-oneway] [--replot]
+[--worlds corridor corridor-oneway] [--json NAME ...] [--replot]
 """
 
 from __future__ import annotations
@@ -143,12 +143,19 @@ def main() -> None:
     ap.add_argument("--levels", type=float, nargs="+", default=[1.0, 2.0, 4.0])
     ap.add_argument("--worlds", nargs="+", default=["corridor", "corridor-oneway"])
     ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--json", default="paper_laser_claim.json", help="name in experiments/out")
+    ap.add_argument(
+        "--json",
+        nargs="+",
+        default=["paper_laser_claim.json"],
+        help="names in experiments/out: the run writes the first; the table and figure are of "
+        "all of them (e.g. two halves of the sweep run apart)",
+    )
+    ap.add_argument("--png", default="paper_laser_claim.png", help="figure, in experiments/")
     ap.add_argument(
         "--replot", action="store_true", help="table and figure from experiments/out only"
     )
     args = ap.parse_args()
-    path = HERE / "out" / args.json
+    path = HERE / "out" / args.json[0]
     if not args.replot:
         jobs = list(itertools.product(args.worlds, args.levels, range(args.seeds)))
         rows: list[dict] = []
@@ -158,9 +165,9 @@ def main() -> None:
                 print(f"{w} x{lv:g} seed {s} done", flush=True)
         path.parent.mkdir(exist_ok=True)
         path.write_text(json.dumps(rows))
-    rows = json.loads(path.read_text())
+    rows = [r for name in args.json for r in json.loads((HERE / "out" / name).read_text())]
     print(summarise(rows))
-    plot(rows, HERE / args.json.replace(".json", ".png"))
+    plot(rows, HERE / args.png)
 
 
 if __name__ == "__main__":
