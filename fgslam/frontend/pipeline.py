@@ -228,8 +228,10 @@ class FrontEnd:
             if self.p.corners != "off":
                 corners = self._corners(segs, lines, phi, r, clusters, pts, stats)
             if self.p.corners == "replace-lines":  # a corner's points count once, in it
-                for k, _ in corners:
-                    lines[k] = lines[k + 1] = None
+                corners, used, dropped = points_once(corners)
+                stats["corners_sharing_a_wall"] += dropped
+                for k in used:
+                    lines[k] = None
             for f in [f for f in lines if f is not None] + [c for _, c in corners]:
                 f.cov = time_registration_inflation(
                     f.cov,
@@ -538,6 +540,22 @@ class FrontEnd:
                 [m[0] + c * e[:, 0] - s * e[:, 1], m[1] + s * e[:, 0] + c * e[:, 1]]
             )
         return f
+
+
+def points_once(
+    corners: list[tuple[int, Feature]],
+) -> tuple[list[tuple[int, Feature]], set[int], int]:
+    """Corners ``(k, corner of lines k and k + 1)`` in scan order such that no line's points
+    are in two of them: a corner whose line an earlier kept corner took is dropped (three
+    walls of a room: the first corner, and the third wall as a line). Returns the kept
+    corners, the lines they took, and how many corners were dropped."""
+    kept: list[tuple[int, Feature]] = []
+    used: set[int] = set()
+    for k, c in corners:
+        if k not in used and k + 1 not in used:
+            kept.append((k, c))
+            used.update((k, k + 1))
+    return kept, used, len(corners) - len(kept)
 
 
 def _plane(
