@@ -71,6 +71,14 @@ def split(stats) -> dict:
         "step": cum("fgslam/slam/step.py", "keyframe"),
         "commit": cum("fgslam/slam/graph.py", "commit", ("fgslam/slam/step.py", "keyframe")),
     }
+    out["isam2_update"] = cum("~", "<built-in method gtsam.gtsam.update>")
+    # the Python callbacks of the custom factors (lines, corners, calibrated odometry, own
+    # time), wherever GTSAM calls them (iSAM2's linearisations, mostly)
+    out["custom_factors"] = sum(
+        v[3]
+        for (f, _, n), v in stats.stats.items()
+        if n == "error" and "/factors/" in f.replace("\\", "/")
+    )
     out["front_end"] -= out["scan_odometry"]
     out["step"] -= out["loop_search"]
     out["rest"] = out["total"] - sum(out[k] for k in ("loop_search", "scan_odometry"))
@@ -179,6 +187,8 @@ PROFILE_ROWS = [
     ("front_end", "front end (features of the keyframes)"),
     ("step", "SLAM step without the loop search"),
     ("commit", "- of it the backend's commit (iSAM2 update)"),
+    ("isam2_update", "iSAM2's update() calls, everywhere"),
+    ("custom_factors", "custom factors' Python callbacks (nearly all within those)"),
     ("rest", "reading the log, the rest"),
 ]
 

@@ -34,6 +34,7 @@ Typical use:
 Frames follow REP-103 (x forward, y left, yaw counter-clockwise); units are SI.
 """
 
+WORLD_HELP = "built-in world (corridor, corridor-oneway) or a world JSON file (default corridor)"
 CONFIG_OVER_LOG_HELP = (
     "TOML file whose keys override the log's robot configuration (or the built-in one for "
     "logs that carry none), key by key; it must not contradict the log (beam count, sonar "
@@ -609,6 +610,14 @@ def _add_scanmatch_arguments(p: argparse.ArgumentParser) -> None:
         "wheelbase; report.json: calibration) or take the configuration's as exact "
         "(default: the configuration's [odometry] calibration)",
     )
+    g.add_argument(
+        "--sonar-timing",
+        choices=["scan-frame", "own-time"],
+        help="iSAM2 and batch: attach each sonar point or plane measurement to the pose at "
+        "its reading's own time (interpolated between keyframes) or move it by odometry "
+        "into the laser scan's frame as the paper does (the EKF always does the latter; "
+        "default: the configuration's [sonar] timing)",
+    )
 
 
 def _config_options(args: argparse.Namespace) -> dict[str, dict]:
@@ -620,6 +629,7 @@ def _config_options(args: argparse.Namespace) -> dict[str, dict]:
             "loop_closures": getattr(args, "loops", None),
         },
         "odometry": {"calibration": getattr(args, "calibration", None)},
+        "sonar": {"timing": getattr(args, "sonar_timing", None)},
     }
 
 
@@ -761,7 +771,7 @@ def build_parser() -> argparse.ArgumentParser:
             "given seed."
         ),
     )
-    p.add_argument("--world", default="corridor", help="built-in world name or world JSON file")
+    p.add_argument("--world", default="corridor", help=WORLD_HELP)
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument(
         "--duration", type=float, help="stop after this many seconds (default: whole route)"
@@ -970,7 +980,7 @@ def build_parser() -> argparse.ArgumentParser:
             "pulls) can be injected."
         ),
     )
-    p.add_argument("--world", default="corridor", help="built-in world name or world JSON file")
+    p.add_argument("--world", default="corridor", help=WORLD_HELP)
     p.add_argument("--seed", type=int, default=0, help="random seed of the run (default 0)")
     p.add_argument("--speed", type=float, default=1.0, metavar="K", help=speed_help)
     p.add_argument(

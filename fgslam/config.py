@@ -162,6 +162,11 @@ class SonarConfig:
     plane_incidence_deg: float
     cycle_rate: float
     arrays: tuple[SonarArrayConfig, ...]
+    # where the graph backends attach a sonar point or plane feature: "scan-frame" (the
+    # paper: the reading moved by odometry into the laser scan's frame) or "own-time" (the
+    # pose at the reading's own time, interpolated between the keyframes around it; DESIGN
+    # 6). The EKF keeps no past poses and always uses the scan frame.
+    timing: str = "scan-frame"
 
     @property
     def sigma_bearing(self) -> float:
@@ -550,6 +555,7 @@ def from_dict(data: dict[str, Any], source: str = "<dict>") -> RobotConfig:
 CALIBRATION_CHOICES = ("off", "wheels")
 CORNER_CHOICES = ("with-lines", "replace-lines", "off")
 POINTS_FROM_CHOICES = ("any-echo", "unfused-echoes")
+SONAR_TIMING_CHOICES = ("scan-frame", "own-time")
 
 
 def _check_consistency(cfg: RobotConfig, src: str) -> None:
@@ -570,6 +576,11 @@ def _check_consistency(cfg: RobotConfig, src: str) -> None:
         raise ConfigError(
             f"{src}: key 'frontend.points_from': expected one of "
             f"{', '.join(POINTS_FROM_CHOICES)}, got {cfg.frontend.points_from!r}"
+        )
+    if cfg.sonar.timing not in SONAR_TIMING_CHOICES:
+        raise ConfigError(
+            f"{src}: key 'sonar.timing': expected one of "
+            f"{', '.join(SONAR_TIMING_CHOICES)}, got {cfg.sonar.timing!r}"
         )
     if cfg.odometry.calibration not in CALIBRATION_CHOICES:
         raise ConfigError(

@@ -50,3 +50,10 @@ def test_simulate_custom_world_without_route(tmp_path, capsys):
     w.write_text(json.dumps({"name": "box", "walls": [{"id": "a", "points": [[0, 0], [1, 0]]}]}))
     assert main(["simulate", "--world", str(w), "--out", str(tmp_path / "x.log")]) == 2
     assert "no route" in capsys.readouterr().err
+
+
+def test_world_help_names_every_built_in_world():
+    from fgslam.cli import WORLD_HELP
+    from fgslam.sim.world import BUILTIN_WORLDS
+
+    assert all(name in WORLD_HELP for name in BUILTIN_WORLDS)

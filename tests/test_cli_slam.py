@@ -112,3 +112,14 @@ def test_run_calibration_option(short_log, tmp_path, capsys):
     with pytest.raises(SystemExit):
         main([*args, "--calibration", "yes", "--out", str(tmp_path / "x")])
     assert "invalid choice" in capsys.readouterr().err
+
+
+def test_run_sonar_timing_option(short_log, tmp_path):
+    """--sonar-timing own-time: the graph attaches sonar features at their own time
+    (report.json statistics count them); the default (scan-frame) attaches none."""
+    args = ["run", str(short_log), "--backend", "isam2", "--sensors", "sonar"]
+    assert main([*args, "--sonar-timing", "own-time", "--out", str(tmp_path / "own")]) == 0
+    assert main([*args, "--out", str(tmp_path / "scan")]) == 0
+    own = json.loads((tmp_path / "own" / "report.json").read_text())["statistics"]
+    scan = json.loads((tmp_path / "scan" / "report.json").read_text())["statistics"]
+    assert own["sonar_own_time"] > 50 and "sonar_own_time" not in scan

@@ -362,8 +362,9 @@ def test_fusion_and_points_on_the_simulated_corridor():
 
 def test_corner_and_its_lines_counted_once_on_request():
     """``corners``: "with-lines" (the paper) gives the room's corners and every wall;
-    "replace-lines" the same corners without the walls they were fitted to (no point
-    measured twice); "off" the walls and no corner."""
+    "replace-lines" corners without the walls they were fitted to, and no wall in two
+    corners (no point measured twice: of the two corners sharing the east wall the first
+    stays, the north wall stays a line); "off" the walls and no corner."""
     from fgslam.frontend.pipeline import FrontEndParams
 
     _, ranges = scene_events(ROOM, seed=4, sonar=False)
@@ -378,13 +379,14 @@ def test_corner_and_its_lines_counted_once_on_request():
     lines, corners = out["with-lines"]
     assert len(corners) >= 1 and len(lines) >= 3
     r_lines, r_corners = out["replace-lines"]
-    assert [c.z.tolist() for c in r_corners] == [c.z.tolist() for c in corners]
+    assert len(corners) == 2 and [c.z.tolist() for c in r_corners] == [corners[0].z.tolist()]
     kept = {tuple(f.z) for f in r_lines}
     assert kept < {tuple(f.z) for f in lines}
-    vertices = [c.z[1] * np.array([math.cos(c.z[0]), math.sin(c.z[0])]) for c in corners]
-    for f in lines:  # a wall goes exactly when one of its ends is a corner's vertex
+    vertices = [c.z[1] * np.array([math.cos(c.z[0]), math.sin(c.z[0])]) for c in r_corners]
+    for f in lines:  # a wall goes exactly when one of its ends is a kept corner's vertex
         at_corner = min(np.hypot(*(e - v)) for e in f.endpoints for v in vertices) < 0.35
         assert (tuple(f.z) not in kept) == at_corner, f.z
+    assert len(r_lines) == len(lines) - 2
     o_lines, o_corners = out["off"]
     assert not o_corners and [f.z.tolist() for f in o_lines] == [f.z.tolist() for f in lines]
     with pytest.raises(ConfigError, match=r"frontend\.corners"):
@@ -444,3 +446,12 @@ def test_corner_fitted_to_its_lines_beams_only(mode):
         assert len(ne) == 1
         v = ne[0].z[1] * np.array([math.cos(ne[0].z[0]), math.sin(ne[0].z[0])])
         assert np.hypot(*(v - (4.0, 3.0))) < 0.02, v
+
+
+def test_points_once_keeps_no_wall_in_two_corners():
+    from fgslam.frontend.pipeline import points_once
+
+    a, b, c, d = object(), object(), object(), object()
+    kept, used, dropped = points_once([(0, a), (1, b), (2, c), (5, d)])
+    assert kept == [(0, a), (2, c), (5, d)] and used == {0, 1, 2, 3, 5, 6} and dropped == 1
+    assert points_once([]) == ([], set(), 0)

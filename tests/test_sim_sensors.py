@@ -169,6 +169,32 @@ def test_corridor_world_contents():
     assert len(w.mouldings) >= 10
 
 
+def test_corridor_oneway_steps_seen_by_the_laser_one_way_and_by_sonar_both_ways():
+    """The second world (issue 15, section 5): each step's face is seen by the forward laser
+    only when driving toward -x; the step's convex edge is heard by the sonar from both
+    directions; no 20 cm door recess or alcove is left."""
+    w = load_world("corridor-oneway")
+    ref = load_world("corridor")
+    assert len(w.corners) < len(ref.corners)
+    rng = np.random.default_rng(0)
+    m = CFG.laser.mount
+    for x_step, y0, y1 in ((-15.0, 9.2, 9.4), (5.0, 9.4, 9.6), (22.0, 7.0, 7.2)):
+        for heading, ahead in ((math.pi, -1), (0.0, 1)):  # toward -x: face seen
+            x = x_step - ahead * 3.0  # 3 m before the step, driving toward it
+            pose = (x + math.cos(heading) * m.x, 8.2, heading)
+            r = laser_scan(w, CFG.laser, EXACT, pose, 0.0, rng)
+            a = heading + CFG.laser.bearings
+            px, py = pose[0] + r * np.cos(a), pose[1] + r * np.sin(a)
+            on_face = np.abs(px - x_step) < 0.03
+            on_face &= (py > min(y0, y1) + 0.02) & (py < max(y0, y1) - 0.02)
+            assert (np.sum(on_face) > 0) == (heading == math.pi), (x_step, heading)
+            edge_y = 9.2 if x_step == -15.0 else (9.4 if x_step == 5.0 else 7.2)
+            dy = edge_y - 8.2
+            sp = (x, 8.2, math.atan2(dy, x_step - x))  # a transducer pointed at the edge
+            heard = [e for e in echoes(w, sp) if e.kind == "edge"]
+            assert any(abs(e.range - math.hypot(x_step - x, dy)) < 0.02 for e in heard)
+
+
 @pytest.mark.parametrize(
     "data, msg",
     [

@@ -34,6 +34,18 @@ class End(StrEnum):
         return self is not End.FIELD_OF_VIEW
 
 
+@dataclass(frozen=True)
+class OwnTime:
+    """A sonar feature's measurement from the robot at the reading's own time ``t`` (s):
+    ``z`` and ``cov`` like :attr:`Feature.z`, in the robot frame then, not moved by odometry
+    into the scan's frame (DESIGN 6; used by the graph backends with ``[sonar] timing =
+    "own-time"``)."""
+
+    t: float
+    z: NDArray[np.float64]
+    cov: NDArray[np.float64]
+
+
 @dataclass
 class Feature:
     """One measured feature in the robot frame at the scan's time.
@@ -43,7 +55,8 @@ class Feature:
     z = (bearing, range). ``cov`` is ordered like z. ``endpoints`` (2, 2) for lines (first
     and last point projected on the line, in scan order) and corners (the ends of both arms).
     ``support`` counts laser points and sonar readings; ``sources`` says which sensors
-    measured z ("laser", "sonar" or "fused").
+    measured z ("laser", "sonar" or "fused"). ``own``: a sonar-only point or plane feature's
+    measurement at the reading's own time (None for the others).
     """
 
     kind: str
@@ -57,6 +70,7 @@ class Feature:
     laser_support: int = 0
     sonar_support: int = 0
     sonar_readings: tuple[SonarReading, ...] = field(default=(), repr=False)
+    own: OwnTime | None = field(default=None, repr=False)
 
 
 @dataclass

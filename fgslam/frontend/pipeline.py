@@ -27,7 +27,7 @@ from factors.corner import corner_to_world, predict_corner
 from factors.geometry import wrap_angle
 from factors.line import line_residual, line_to_world
 from factors.odometry import OdometryIntegrator
-from factors.point import point_to_world, predict_point
+from factors.point import bearing_range_to_robot_frame, point_to_world, predict_point
 from factors.sensor_models import (
     CORNER_ANGULAR,
     LINE_ANGULAR,
@@ -36,7 +36,7 @@ from factors.sensor_models import (
 )
 from fgslam.config import RobotConfig
 from fgslam.events import Event, LaserScan, OdometryEvent, SonarReading
-from fgslam.frontend.features import End, Feature, ScanFeatures
+from fgslam.frontend.features import End, Feature, OwnTime, ScanFeatures
 from fgslam.frontend.fits import FitRejected, fit_corner, fit_line
 from fgslam.frontend.fusion import fuse
 from fgslam.frontend.segmentation import Segment, SegmentParams, segment_scan
@@ -228,8 +228,10 @@ class FrontEnd:
             if self.p.corners != "off":
                 corners = self._corners(segs, lines, phi, r, clusters, pts, stats)
             if self.p.corners == "replace-lines":  # a corner's points count once, in it
-                for k, _ in corners:
-                    lines[k] = lines[k + 1] = None
+                corners, used, dropped = points_once(corners)
+                stats["corners_sharing_a_wall"] += dropped
+                for k in used:
+                    lines[k] = None
             for f in [f for f in lines if f is not None] + [c for _, c in corners]:
                 f.cov = time_registration_inflation(
                     f.cov,
@@ -414,11 +416,18 @@ class FrontEnd:
     # ------------------------------------------------------------------ sonar features
 
     def _plane_cov(self, pts: SonarPoints, i: int) -> NDArray[np.float64]:
-        tx, ty, _ = pts.sensor[i]
-        a = pts.line[i, 0]
         C = self.sonar_model.covariance(pts.r[i])
-        J = np.array([[1.0, 0.0], [-tx * math.sin(a) + ty * math.cos(a), 1.0]])
-        return J @ C @ J.T
+        return _plane(pts.sensor[i], pts.bearing[i], pts.r[i], C)[1]
+
+    def _own(self, pts: SonarPoints, i: int, kind: str) -> OwnTime:
+        """Echo ``i`` as a point (bearing, range) or plane (alpha, d) measurement from the
+        robot at the reading's own time (its transducer's mount, no odometry)."""
+        C = self.sonar_model.covariance(pts.r[i])
+        if kind == "line":
+            z, cov = _plane(pts.mount[i], pts.bearing[i], pts.r[i], C)
+        else:
+            z, cov = bearing_range_to_robot_frame((pts.bearing[i], pts.r[i]), C, pts.mount[i])
+        return OwnTime(float(pts.t[i]), z, cov)
 
     def _point_cov(self, pts: SonarPoints, i: int) -> NDArray[np.float64]:
         _, _, tth = pts.sensor[i]
@@ -473,6 +482,7 @@ class FrontEnd:
             _polar_cov(xy, self._point_cov(pts, i)),
             "sonar",
             sonar_support=int(c.members.size),
+            own=self._own(pts, i, "point"),
         )
         f.sonar_readings = (pts.readings[int(pts.reading[i])],)
         return f
@@ -496,7 +506,12 @@ class FrontEnd:
         for i in np.flatnonzero(slot & (pts.kind == 0)):
             out.append(
                 Feature(
-                    "line", pts.line[i].copy(), self._plane_cov(pts, i), "sonar", sonar_support=1
+                    "line",
+                    pts.line[i].copy(),
+                    self._plane_cov(pts, i),
+                    "sonar",
+                    sonar_support=1,
+                    own=self._own(pts, i, "line"),
                 )
             )
         return out
@@ -527,6 +542,36 @@ class FrontEnd:
                 [m[0] + c * e[:, 0] - s * e[:, 1], m[1] + s * e[:, 0] + c * e[:, 1]]
             )
         return f
+
+
+def points_once(
+    corners: list[tuple[int, Feature]],
+) -> tuple[list[tuple[int, Feature]], set[int], int]:
+    """Corners ``(k, corner of lines k and k + 1)`` in scan order such that no line's points
+    are in two of them: a corner whose line an earlier kept corner took is dropped (three
+    walls of a room: the first corner, and the third wall as a line). Returns the kept
+    corners, the lines they took, and how many corners were dropped."""
+    kept: list[tuple[int, Feature]] = []
+    used: set[int] = set()
+    for k, c in corners:
+        if k not in used and k + 1 not in used:
+            kept.append((k, c))
+            used.update((k, k + 1))
+    return kept, used, len(corners) - len(kept)
+
+
+def _plane(
+    sensor: NDArray[np.float64], bearing: float, r: float, C: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """A sonar plane echo (``bearing``, range ``r``, covariance ``C`` in that order) of a
+    transducer at ``sensor`` = (x, y, theta) as a line (alpha, d >= 0) in the frame the
+    transducer pose is given in, and its covariance."""
+    tx, ty, tth = (float(v) for v in sensor)
+    a = tth + bearing
+    d = r + tx * math.cos(a) + ty * math.sin(a)
+    alpha = wrap_angle(a + math.pi if d < 0 else a)
+    J = np.array([[1.0, 0.0], [-tx * math.sin(alpha) + ty * math.cos(alpha), 1.0]])
+    return np.array([alpha, abs(d)]), J @ C @ J.T
 
 
 def _polar_cov(xy: NDArray[np.float64], C: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -135,7 +135,8 @@ class SonarPoints:
     ``kind`` code (0 plane, 1 corner, 2 edge), position ``xy`` (for planes the normal foot
     point), ``line`` (alpha, d) for planes (NaN otherwise), measured range ``r`` and
     ``bearing`` (transducer frame), reading time ``t``, ``reading`` id (key of
-    :attr:`SonarBuffer.readings`), and ``sensor`` the transducer pose in the laser frame.
+    :attr:`SonarBuffer.readings`), ``sensor`` the transducer pose in the laser frame and
+    ``mount`` its pose on the robot (x, y, yaw + pan; robot frame at the reading's time).
     """
 
     readings: dict[int, SonarReading]
@@ -147,6 +148,7 @@ class SonarPoints:
     reading: NDArray[np.int64]
     sensor: NDArray[np.float64]
     bearing: NDArray[np.float64]
+    mount: NDArray[np.float64]
 
     def __len__(self) -> int:
         return len(self.kind)
@@ -162,6 +164,7 @@ class SonarPoints:
             self.reading[mask],
             self.sensor[mask],
             self.bearing[mask],
+            self.mount[mask],
         )
 
 
@@ -205,6 +208,7 @@ def to_laser_frame(
         rid.astype(np.int64),
         np.column_stack([tx, ty, tth]),
         brg,
+        np.column_stack([mx, my, mth]),
     )
 
 

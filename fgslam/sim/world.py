@@ -24,7 +24,7 @@ import numpy as np
 
 from fgslam.errors import UserError
 
-BUILTIN_WORLDS = ("corridor",)
+BUILTIN_WORLDS = ("corridor", "corridor-oneway")
 
 
 class WorldError(UserError, ValueError):

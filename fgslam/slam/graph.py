@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import Counter
 
 import gtsam
 import numpy as np
@@ -102,8 +103,13 @@ class GraphBackend(Backend):
         converge_tol: float = 0.01,
         loop_updates: int = 2,
         calibration: NDArray[np.float64] | None = None,
+        sonar_timing: str = "scan-frame",
     ) -> None:
         super().__init__()
+        if sonar_timing not in ("scan-frame", "own-time"):
+            raise ValueError(f"unknown sonar timing {sonar_timing!r}")
+        self.own_time = sonar_timing == "own-time"
+        self.stats: Counter = Counter()  # sonar_own_time: measurements at their own time
         self.calibration = None if calibration is None else np.array(calibration, dtype=float)
         self._c = np.zeros(3)  # the calibration errors' current estimate
         self._calibrated = False  # the last link's wheels carry the calibration
@@ -291,7 +297,7 @@ class GraphBackend(Backend):
     # ------------------------------------------------------------------ measurements
 
     def observe(self, lid: int, f: Feature) -> None:
-        self.new_graph.add(models.factor(self.kinds[lid], X(self.k), L(lid), f, self.robust))
+        self.new_graph.add(self._factor(lid, f))
         self._touched.add(lid)
 
     def add_landmark(self, lid: int, f: Feature) -> None:
@@ -299,7 +305,27 @@ class GraphBackend(Backend):
         self._touched.add(lid)
         lm, _, _ = models.to_world(f.kind, self._pose_pred, f.z)
         self.new_values.insert(L(lid), models.value(f.kind, lm))
-        self.new_graph.add(models.factor(f.kind, X(self.k), L(lid), f, self.robust))
+        self.new_graph.add(self._factor(lid, f))
+
+    # a reading this far outside the last two keyframes' interval stays in the scan frame
+    OWN_TIME_REACH = (-1.0, 2.0)
+
+    def _factor(self, lid: int, f: Feature) -> gtsam.NonlinearFactor:
+        """The measurement's factor: at the keyframe (the scan frame), or, with own time on
+        and a sonar feature, from the pose at its reading's time between the last two
+        keyframes (constant twist; a reading after the keyframe extrapolates it)."""
+        kind = self.kinds[lid]
+        own = f.own
+        if self.own_time and own is not None and self.k > 0 and kind in models.OWN_TIME_KINDS:
+            ta, tb = self.times[self.k - 1], self.times[self.k]
+            if tb > ta:
+                s = (own.t - ta) / (tb - ta)
+                if self.OWN_TIME_REACH[0] <= s <= self.OWN_TIME_REACH[1]:
+                    self.stats["sonar_own_time"] += 1
+                    return models.own_time_factor(
+                        kind, X(self.k - 1), X(self.k), L(lid), s, own, self.robust
+                    )
+        return models.factor(kind, X(self.k), L(lid), f, self.robust)
 
     def merge(self, keep: int, drop: int) -> None:
         """A robust tie (sigma ``merge_sigma``) between two variables of one landmark."""

@@ -34,8 +34,9 @@ from factors.line import (
     line_to_world,
     normalize_line,
 )
+from factors.own_time import interpolated_factor
 from factors.point import point_factor, point_residual, point_to_world
-from fgslam.frontend.features import Feature
+from fgslam.frontend.features import Feature, OwnTime
 
 
 def _rot_block(th: float) -> NDArray[np.float64]:
@@ -262,6 +263,27 @@ def factor(
     if len(f.z) == 2:
         return corner_bearing_range_factor(pose_key, lm_key, f.z, noise)
     return corner_factor(pose_key, lm_key, f.z, noise)
+
+
+OWN_TIME_KINDS = {"point": point_residual, "line": line_residual}  # vector landmarks
+
+
+def own_time_factor(
+    kind: str,
+    key_a: int,
+    key_b: int,
+    lm_key: int,
+    s: float,
+    own: OwnTime,
+    robust: str = "none",
+) -> gtsam.NonlinearFactor:
+    """The factor of a sonar point or plane measured at its own time (``own``, robot frame
+    then) from the pose at fraction ``s`` between keyframe poses ``key_a`` and ``key_b``
+    (:func:`factors.own_time.interpolated_factor`), robust with ``robust``."""
+    if kind not in OWN_TIME_KINDS:
+        raise ValueError(f"no own-time factor for {kind!r} landmarks")
+    noise = noise_model(own.cov, robust)
+    return interpolated_factor(OWN_TIME_KINDS[kind], key_a, key_b, lm_key, s, own.z, noise)
 
 
 def value(kind: str, lm: NDArray[np.float64]) -> object:

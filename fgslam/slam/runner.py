@@ -52,15 +52,19 @@ SENSORS = ("fused", "laser", "sonar")
 
 
 def make_backend(
-    name: str, motion_gate_p: float = 0.999, calibration: NDArray[np.float64] | None = None
+    name: str,
+    motion_gate_p: float = 0.999,
+    calibration: NDArray[np.float64] | None = None,
+    sonar_timing: str = "scan-frame",
 ) -> Backend:
     """A backend by name; ``motion_gate_p``: the EKF's gate between wheel odometry and a scan
     match of one link (:meth:`EkfBackend.predict`); ``calibration``: the prior covariance of
-    the wheel calibration errors to estimate (None: off; ``OdometryConfig.calibration``)."""
+    the wheel calibration errors to estimate (None: off; ``OdometryConfig.calibration``);
+    ``sonar_timing``: the graph's (``SonarConfig.timing``; the EKF has only the scan frame)."""
     if name == "ekf":
         return EkfBackend(motion_gate_p=motion_gate_p, calibration=calibration)
     if name in ("isam2", "batch"):  # batch: the iSAM2 graph, solved by LM at the end
-        return GraphBackend(calibration=calibration)
+        return GraphBackend(calibration=calibration, sonar_timing=sonar_timing)
     raise ValueError(f"unknown backend {name!r}; expected one of {BACKENDS}")
 
 
@@ -120,8 +124,10 @@ class _Session(SlamStep):
         loops: LoopCloser | None = None,
         motion_gate_p: float = 0.999,
         calibration: NDArray[np.float64] | None = None,
+        sonar_timing: str = "scan-frame",
     ) -> None:
-        super().__init__(make_backend(backend, motion_gate_p, calibration), map_params, loops)
+        be = make_backend(backend, motion_gate_p, calibration, sonar_timing)
+        super().__init__(be, map_params, loops)
         self.failed: dict | None = None
 
     @property
@@ -231,7 +237,9 @@ class SlamPipeline:
                 self.sessions[b] = _Session("ekf", map_params, None, kp.motion_gate_p, cal)
             elif b in ("isam2", "batch") and "graph" not in self.sessions:
                 loop = LoopCloser(lp, mp, origin, cfg.laser.sigma_time) if lp.enabled else None
-                self.sessions["graph"] = _Session("isam2", map_params, loop, calibration=cal)
+                self.sessions["graph"] = _Session(
+                    "isam2", map_params, loop, calibration=cal, sonar_timing=cfg.sonar.timing
+                )
         self.reorder = ReorderBuffer(reorder_window)
         self.frontend = FrontEnd(cfg, sensors, select=self._select)
         self._steps: deque = deque()  # the scan odometry's decisions, in scan order
