@@ -37,7 +37,7 @@ from factors.sensor_models import (
 from fgslam.config import RobotConfig
 from fgslam.events import Event, LaserScan, OdometryEvent, SonarReading
 from fgslam.frontend.features import End, Feature, OwnTime, ScanFeatures
-from fgslam.frontend.fits import FitRejected, fit_corner, fit_line
+from fgslam.frontend.fits import FitRejected, corner_ranges, fit_corner, fit_line
 from fgslam.frontend.fusion import fuse
 from fgslam.frontend.segmentation import Segment, SegmentParams, segment_scan
 from fgslam.frontend.sonar import (
@@ -369,9 +369,13 @@ class FrontEnd:
             if abs(wrap_angle(g - phi_c)) > math.pi / 2:
                 g += math.pi
             convex = wrap_angle(a2 - g) < 0
-            # the two lines' beams only: beams between them (an occluder's shadow, a piece
-            # too short for a line) are not the corner's
-            sl = np.r_[s1.first : s1.last + 1, s2.first : s2.last + 1]
+            # the two lines' beams, and those between them that the corner of the two lines
+            # explains (the vertex's own returns); not an occluder's or its shadow's
+            between = np.arange(s1.last + 1, s2.first)
+            if between.size:
+                pred = corner_ranges((phi_c, r_c, g), phi[between], convex)[0]
+                between = between[np.abs(r[between] - pred) <= self.p.segment.outlier]
+            sl = np.r_[s1.first : s1.last + 1, between, s2.first : s2.last + 1]
             try:
                 fit = fit_corner(
                     phi[sl],
