@@ -433,11 +433,10 @@ def test_sonar_points_from_unfused_echoes_only_on_request():
 
 
 @pytest.mark.parametrize("mode", ["fused", "laser"])
-def test_corner_fitted_to_its_lines_beams_only(mode):
+def test_corner_fitted_without_an_occluder_between_its_lines(mode):
     """A table leg shadows the north wall 0.2-0.5 m from the room's north-east corner: the
-    corner of the east wall and the rest of the north wall is fitted to those two lines'
-    beams, not to the leg's and the short wall piece's between them (which put it 0.29 m
-    off, 12 sigma, in the simulated lab before)."""
+    corner of the east wall and the rest of the north wall is fitted without the leg's beams
+    between the two lines (which put it 0.29 m off, 12 sigma, in the simulated lab before)."""
     scene = {**ROOM, "legs": [{"x": 2.0, "y": 1.65, "radius": 0.06}]}
     for seed in range(3):
         evs, _ = scene_events(scene, (0.0, 0.0, 0.0), seed=seed)
@@ -455,3 +454,35 @@ def test_points_once_keeps_no_wall_in_two_corners():
     kept, used, dropped = points_once([(0, a), (1, b), (2, c), (5, d)])
     assert kept == [(0, a), (2, c), (5, d)] and used == {0, 1, 2, 3, 5, 6} and dropped == 1
     assert points_once([]) == ([], set(), 0)
+
+
+def test_corner_keeps_the_vertex_returns_between_its_lines():
+    """Beams between a corner's two lines that the corner explains (returns near the vertex
+    that neither line took, as on real scans) are fitted with it; beams there that the corner
+    does not explain (an occluder) are not."""
+    import dataclasses
+    from collections import Counter
+
+    from fgslam.frontend.pipeline import FrontEndParams
+    from fgslam.frontend.segmentation import segment_scan
+
+    _, ranges = scene_events(ROOM, seed=4, sonar=False)
+    fe = FrontEnd(CFG, "laser", FrontEndParams())
+    phi, r = CFG.laser.bearings, np.array(ranges, dtype=float)
+    segs, _ = segment_scan(phi, r, fe.p.segment)
+    k = next(i for i, s in enumerate(segs[:-1]) if s.end.value in ("outliers", "spread"))
+
+    def support(r):
+        s2 = dataclasses.replace(segs[k + 1], first=segs[k + 1].first + 4)  # 4 beams left out
+        ss = [*segs[:k], segs[k], s2, *segs[k + 2 :]]
+        lines = [fe._line(s, phi, r, None, Counter()) for s in ss]
+        (c,) = [c for j, c in fe._corners(ss, lines, phi, r, [], None, Counter()) if j == k]
+        return c.laser_support, segs[k + 1].last - segs[k].first + 1
+
+    got, span = support(r)
+    assert got == span  # the 4 returns between the lines are the corner's
+    r2 = r.copy()
+    gap = segs[k + 1].first
+    r2[gap + 1 : gap + 3] *= 0.6  # two of them hit something in front of the corner
+    got, span = support(r2)
+    assert got == span - 2
