@@ -34,6 +34,12 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from fgslam import evaluation
+from fgslam.choices import (
+    CALIBRATION_CHOICES,
+    CORNER_CHOICES,
+    POINTS_FROM_CHOICES,
+    SONAR_TIMING_CHOICES,
+)
 from fgslam.config import load_config, with_options
 from fgslam.logfile import LogReader
 from fgslam.sim import simulate_to_log
@@ -213,24 +219,24 @@ def main() -> None:
     ap.add_argument("--mode", default="paper", choices=list(MODES))
     ap.add_argument(
         "--calibration",
-        choices=["off", "wheels"],
+        choices=CALIBRATION_CHOICES,
         help="estimate the wheel calibration (default: the configuration's)",
     )
     ap.add_argument(
         "--corners",
-        choices=["with-lines", "replace-lines", "off"],
+        choices=CORNER_CHOICES,
         help="a corner and its two lines: both measured (the paper), the corner alone, or the "
         "lines alone (default: the configuration's)",
     )
     ap.add_argument(
         "--points-from",
-        choices=["any-echo", "unfused-echoes"],
+        choices=POINTS_FROM_CHOICES,
         help="sonar point features also from echoes fused into a line or corner, or not "
         "(default: the configuration's)",
     )
     ap.add_argument(
         "--sonar-timing",
-        choices=["scan-frame", "own-time"],
+        choices=SONAR_TIMING_CHOICES,
         help="iSAM2 and batch: sonar points and planes at their readings' own time, or moved "
         "into the scan's frame (default: the configuration's)",
     )
