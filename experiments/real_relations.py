@@ -4,6 +4,7 @@ the published figures.
 
 Run: python experiments/real_relations.py [--logs intel mit-csail freiburg-079]
        [--backends ekf isam2 batch] [--max-scans N] [--calibration off|wheels]
+       [--corners with-lines|replace-lines|off]
 Reads ``../shared/data/<log>`` with fgslam.readers (corrected logs: odometry rebuilt, the
 corrected poses as reference; mit-csail: a raw log), runs the front end in "laser" mode and
 the backends (iSAM2 and batch share one graph; the EKF alone), and scores the keyframe poses
@@ -22,6 +23,7 @@ import numpy as np
 from real_carmen import limited  # the same scan limit as the ATE experiment
 
 from fgslam import dense, evaluation
+from fgslam.choices import CALIBRATION_CHOICES, CORNER_CHOICES
 from fgslam.config import with_options
 from fgslam.readers import open_log
 from fgslam.readers.carmen import odometry_chain
@@ -101,6 +103,7 @@ def run(
     header: bool = True,
     figures: Path | None = None,
     calibration: str | None = None,
+    corners: str | None = None,
 ) -> None:
     log_file, rel_file = FILES[name]
     path, rel = DATA / log_file, dense.read_relations(DATA / rel_file)
@@ -111,7 +114,12 @@ def run(
     for group in [g for g in groups if g]:
         reader = open_log(path)
         cfg = with_options(
-            reader.config, {"scanmatch": MODES[mode], "odometry": {"calibration": calibration}}
+            reader.config,
+            {
+                "scanmatch": MODES[mode],
+                "odometry": {"calibration": calibration},
+                "frontend": {"corners": corners},
+            },
         )
         sample = ScanSample(max_scans=1500)
         t0 = time.perf_counter()
@@ -168,8 +176,14 @@ def main() -> None:
     )
     ap.add_argument(
         "--calibration",
-        choices=["off", "wheels"],
+        choices=CALIBRATION_CHOICES,
         help="estimate the wheel calibration (default: the log's configuration, off)",
+    )
+    ap.add_argument(
+        "--corners",
+        choices=CORNER_CHOICES,
+        help="corners with their lines (the paper), instead of them, or none (default: the "
+        "configuration's)",
     )
     args = ap.parse_args()
     print(
@@ -187,6 +201,7 @@ def main() -> None:
                 header=i == 0,
                 figures=args.figures,
                 calibration=args.calibration,
+                corners=args.corners,
             )
 
 

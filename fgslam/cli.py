@@ -15,6 +15,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from fgslam import __version__
+from fgslam.choices import CALIBRATION_CHOICES, SCANMATCH_CHOICES, SONAR_TIMING_CHOICES
 from fgslam.errors import UserError
 
 EPILOG = """\
@@ -587,32 +588,32 @@ def _add_scanmatch_arguments(p: argparse.ArgumentParser) -> None:
     )
     g.add_argument(
         "--odometry",
-        choices=["wheels", "scan", "both"],
+        choices=SCANMATCH_CHOICES["odometry"],
         help="what links consecutive keyframes: wheel odometry (the paper), laser scan "
         "matching, or both as two robust constraints",
     )
     g.add_argument(
         "--keyframes",
-        choices=["motion", "every-scan"],
+        choices=SCANMATCH_CHOICES["keyframes"],
         help="a keyframe after a set travel or turn (the scans between are carried by scan "
         "matching), or every scan (the paper)",
     )
     g.add_argument(
         "--loops",
-        choices=["on", "off"],
+        choices=SCANMATCH_CHOICES["loop_closures"],
         help="verified loop closures by scan matching (iSAM2 and batch; the EKF keeps no "
         "past poses to close a loop on)",
     )
     g.add_argument(
         "--calibration",
-        choices=["off", "wheels"],
+        choices=CALIBRATION_CHOICES,
         help="estimate the wheel calibration (relative errors of the wheel radii and the "
         "wheelbase; report.json: calibration) or take the configuration's as exact "
         "(default: the configuration's [odometry] calibration)",
     )
     g.add_argument(
         "--sonar-timing",
-        choices=["scan-frame", "own-time"],
+        choices=SONAR_TIMING_CHOICES,
         help="iSAM2 and batch: attach each sonar point or plane measurement to the pose at "
         "its reading's own time (interpolated between keyframes) or move it by odometry "
         "into the laser scan's frame as the paper does (the EKF always does the latter; "

@@ -19,6 +19,7 @@ from typing import Any
 
 import gtsam
 
+from fgslam.choices import CHOICES
 from fgslam.errors import UserError
 
 DEFAULT_CONFIG_NAME = "robot_default.toml"
@@ -249,13 +250,6 @@ class ScanMatchConfig:
     model_error_xy: float = -1.0
     model_error_theta_deg: float = -1.0
     motion_gate_p: float = 0.999
-
-
-SCANMATCH_CHOICES = {
-    "odometry": ("wheels", "scan", "both"),
-    "keyframes": ("motion", "every-scan"),
-    "loop_closures": ("on", "off"),
-}
 
 
 @dataclass(frozen=True)
@@ -552,41 +546,15 @@ def from_dict(data: dict[str, Any], source: str = "<dict>") -> RobotConfig:
     return dataclasses.replace(cfg, source=source)
 
 
-CALIBRATION_CHOICES = ("off", "wheels")
-CORNER_CHOICES = ("with-lines", "replace-lines", "off")
-POINTS_FROM_CHOICES = ("any-echo", "unfused-echoes")
-SONAR_TIMING_CHOICES = ("scan-frame", "own-time")
-
-
 def _check_consistency(cfg: RobotConfig, src: str) -> None:
-    for key, choices in SCANMATCH_CHOICES.items():
-        value = getattr(cfg.scanmatch, key)
+    for (section, key), choices in CHOICES.items():
+        value = getattr(getattr(cfg, section), key)
         if value not in choices:
             raise ConfigError(
-                f"{src}: key 'scanmatch.{key}': expected one of {', '.join(choices)}, got {value!r}"
+                f"{src}: key '{section}.{key}': expected one of {', '.join(choices)}, got {value!r}"
             )
     if not 0.0 < cfg.scanmatch.motion_gate_p < 1.0:
         raise ConfigError(f"{src}: key 'scanmatch.motion_gate_p': expected a value in (0, 1)")
-    if cfg.frontend.corners not in CORNER_CHOICES:
-        raise ConfigError(
-            f"{src}: key 'frontend.corners': expected one of {', '.join(CORNER_CHOICES)}, "
-            f"got {cfg.frontend.corners!r}"
-        )
-    if cfg.frontend.points_from not in POINTS_FROM_CHOICES:
-        raise ConfigError(
-            f"{src}: key 'frontend.points_from': expected one of "
-            f"{', '.join(POINTS_FROM_CHOICES)}, got {cfg.frontend.points_from!r}"
-        )
-    if cfg.sonar.timing not in SONAR_TIMING_CHOICES:
-        raise ConfigError(
-            f"{src}: key 'sonar.timing': expected one of "
-            f"{', '.join(SONAR_TIMING_CHOICES)}, got {cfg.sonar.timing!r}"
-        )
-    if cfg.odometry.calibration not in CALIBRATION_CHOICES:
-        raise ConfigError(
-            f"{src}: key 'odometry.calibration': expected one of "
-            f"{', '.join(CALIBRATION_CHOICES)}, got {cfg.odometry.calibration!r}"
-        )
     sig = cfg.odometry.calibration_sigma
     if len(sig) != 3 or not all(v > 0 for v in sig):
         raise ConfigError(

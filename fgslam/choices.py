@@ -1,0 +1,24 @@
+"""The values each enumerated configuration key may take: one home for the configuration's
+checks, the command line's choices and the experiments' (no heavy imports, so that
+``fgslam --help`` stays fast)."""
+
+from __future__ import annotations
+
+SCANMATCH_CHOICES = {
+    "odometry": ("wheels", "scan", "both"),
+    "keyframes": ("motion", "every-scan"),
+    "loop_closures": ("on", "off"),
+}
+CALIBRATION_CHOICES = ("off", "wheels")
+CORNER_CHOICES = ("with-lines", "replace-lines", "off")
+POINTS_FROM_CHOICES = ("any-echo", "unfused-echoes")
+SONAR_TIMING_CHOICES = ("scan-frame", "own-time")
+
+# (section, key) -> choices
+CHOICES = {
+    **{("scanmatch", key): choices for key, choices in SCANMATCH_CHOICES.items()},
+    ("frontend", "corners"): CORNER_CHOICES,
+    ("frontend", "points_from"): POINTS_FROM_CHOICES,
+    ("sonar", "timing"): SONAR_TIMING_CHOICES,
+    ("odometry", "calibration"): CALIBRATION_CHOICES,
+}
