@@ -32,6 +32,7 @@ from factors.odometry import (
     fuse_motions,
     with_calibration,
 )
+from fgslam.choices import SONAR_TIMING_CHOICES
 from fgslam.errors import UserError
 from fgslam.frontend.features import Feature
 from fgslam.slam import models
@@ -106,7 +107,7 @@ class GraphBackend(Backend):
         sonar_timing: str = "scan-frame",
     ) -> None:
         super().__init__()
-        if sonar_timing not in ("scan-frame", "own-time"):
+        if sonar_timing not in SONAR_TIMING_CHOICES:
             raise ValueError(f"unknown sonar timing {sonar_timing!r}")
         self.own_time = sonar_timing == "own-time"
         self.stats: Counter = Counter()  # sonar_own_time: measurements at their own time
