@@ -3,13 +3,15 @@ iSAM2, batch) and sensor mode (fused, laser only, sonar only).
 
 Run: python experiments/paper_corridor.py [--seeds 10] [--workers 2] [--sensors fused ...]
 [--association jcbb|nn] [--mode paper|scan] [--calibration off|wheels]
+[--laser-calibration off|offset|range]
 [--corners with-lines|replace-lines|off] [--points-from any-echo|unfused-echoes]
 [--sonar-timing scan-frame|own-time] [--json NAME]
 ``--mode paper`` (default) is the paper's scheme: wheel odometry, every scan a keyframe, no
 loop closures; ``scan`` the configuration's defaults (scan matching, keyframes by motion,
-loop closures; issue 14). ``--calibration wheels`` estimates the wheel calibration errors
-(issue 15; default: the configuration's); a second table then compares the estimates
-with the simulator's true errors. ``--corners`` chooses whether a corner's points also count
+loop closures; issue 14). ``--calibration wheels`` estimates the wheel calibration errors,
+``--laser-calibration`` the laser's range offset (and scale) (issue 15; default: the
+configuration's); a second table then compares the estimates with the simulator's true
+errors. ``--corners`` chooses whether a corner's points also count
 as its two lines' measurements, ``--points-from`` whether an echo fused into a line or corner
 may also give a point feature (issue 15, section 3), ``--sonar-timing`` whether iSAM2 and batch
 attach sonar points and planes at their readings' own time (issue 15, section 2).
@@ -37,6 +39,7 @@ from fgslam import evaluation
 from fgslam.choices import (
     CALIBRATION_CHOICES,
     CORNER_CHOICES,
+    LASER_CALIBRATION_CHOICES,
     POINTS_FROM_CHOICES,
     SONAR_TIMING_CHOICES,
 )
@@ -62,6 +65,7 @@ def one_seed(
     association: str = "jcbb",
     mode: str = "paper",
     calibration: str | None = None,
+    laser_calibration: str | None = None,
     corners: str | None = None,
     points_from: str | None = None,
     sonar_timing: str | None = None,
@@ -82,12 +86,19 @@ def one_seed(
             {
                 "scanmatch": MODES[mode],
                 "odometry": {"calibration": calibration},
+                "laser": {"calibration": laser_calibration},
                 "frontend": {"corners": corners, "points_from": points_from},
                 "sonar": {"timing": sonar_timing},
             },
         )
         sim = reader.meta["sim_params"]
-        true_cal = [sim["radius_error_right"], sim["radius_error_left"], sim["wheelbase_error"]]
+        truth = {
+            "e_r": sim["radius_error_right"],
+            "e_l": sim["radius_error_left"],
+            "e_b": sim["wheelbase_error"],
+            "laser_offset": sim["laser_sys_offset"],
+            "laser_scale": sim["laser_sys_per_metre"],
+        }
         for sensors in sensors_list:
             for res in run_backends(
                 LogReader(log), cfg, list(BACKENDS), sensors, association=association
@@ -97,7 +108,8 @@ def one_seed(
                 rep["association"] = association
                 rep["mode"] = mode
                 if "calibration" in rep:
-                    rep["calibration"]["truth"] = true_cal
+                    names = rep["calibration"]["parameters"]
+                    rep["calibration"]["truth"] = [truth[n] for n in names]
                 ref = evaluation.interpolate_poses(res.truth_t, res.truth, res.times)
                 err = evaluation.position_errors(res.poses, ref, align=False)
                 rep["error_curve"] = [res.times.tolist()[::10], err.tolist()[::10]]
@@ -141,17 +153,17 @@ def summarise(rows: list[dict]) -> str:
         )
     cal = [r for r in rows if r.get("calibration")]
     if cal:
+        names = cal[0]["calibration"].get("parameters", ["e_r", "e_l", "e_b"])
         out += [
-            "\nWheel calibration errors (e_r, e_l, e_b; 1e-3), mean +- std over seeds of the "
-            "estimate, its mean sigma, the truth, and the share of seeds with all three within "
-            "3 sigma of the truth:\n",
-            "| backend | sensors | e_r | e_l | e_b | sigma (e_r, e_l, e_b) | truth "
-            "| within 3 sigma |",
-            "|---|---|---|---|---|---|---|---|",
+            f"\nCalibration errors ({', '.join(names)}; 1e-3, laser_offset in mm), mean +- std "
+            "over seeds of the estimate, its mean sigma, the truth, and the share of seeds with "
+            "all of them within 3 sigma of the truth:\n",
+            f"| backend | sensors | {' | '.join(names)} | sigma | truth | within 3 sigma |",
+            "|---|---|" + "---|" * len(names) + "---|---|---|",
         ]
         for sensors, backend, rs in _groups(cal):
             est = 1e3 * np.array([r["calibration"]["estimate"] for r in rs])
-            sig = 1e3 * np.array([r["calibration"]["sigma"] or [np.nan] * 3 for r in rs])
+            sig = 1e3 * np.array([r["calibration"]["sigma"] or [np.nan] * len(names) for r in rs])
             tru = 1e3 * np.array([r["calibration"]["truth"] for r in rs])
             inside = np.mean(np.all(np.abs(est - tru) < 3 * sig, axis=1))
             cells = [f"{m:.2f} +- {d:.2f}" for m, d in zip(est.mean(0), est.std(0), strict=True)]
@@ -218,6 +230,12 @@ def main() -> None:
         help="estimate the wheel calibration (default: the configuration's)",
     )
     ap.add_argument(
+        "--laser-calibration",
+        choices=LASER_CALIBRATION_CHOICES,
+        help="estimate the laser's range offset, or offset and scale (default: the "
+        "configuration's)",
+    )
+    ap.add_argument(
         "--corners",
         choices=CORNER_CHOICES,
         help="a corner and its two lines: both measured (the paper), the corner alone, or the "
@@ -255,6 +273,7 @@ def main() -> None:
             [args.association] * n,
             [args.mode] * n,
             [args.calibration] * n,
+            [args.laser_calibration] * n,
             [args.corners] * n,
             [args.points_from] * n,
             [args.sonar_timing] * n,

@@ -4,6 +4,7 @@ the published figures.
 
 Run: python experiments/real_relations.py [--logs intel mit-csail freiburg-079]
        [--backends ekf isam2 batch] [--max-scans N] [--calibration off|wheels]
+       [--laser-calibration off|offset|range]
        [--corners with-lines|replace-lines|off]
 Reads ``../shared/data/<log>`` with fgslam.readers (corrected logs: odometry rebuilt, the
 corrected poses as reference; mit-csail: a raw log), runs the front end in "laser" mode and
@@ -23,7 +24,7 @@ import numpy as np
 from real_carmen import limited  # the same scan limit as the ATE experiment
 
 from fgslam import dense, evaluation
-from fgslam.choices import CALIBRATION_CHOICES, CORNER_CHOICES
+from fgslam.choices import CALIBRATION_CHOICES, CORNER_CHOICES, LASER_CALIBRATION_CHOICES
 from fgslam.config import with_options
 from fgslam.readers import open_log
 from fgslam.readers.carmen import odometry_chain
@@ -104,6 +105,7 @@ def run(
     figures: Path | None = None,
     calibration: str | None = None,
     corners: str | None = None,
+    laser_calibration: str | None = None,
 ) -> None:
     log_file, rel_file = FILES[name]
     path, rel = DATA / log_file, dense.read_relations(DATA / rel_file)
@@ -118,6 +120,7 @@ def run(
             {
                 "scanmatch": MODES[mode],
                 "odometry": {"calibration": calibration},
+                "laser": {"calibration": laser_calibration},
                 "frontend": {"corners": corners},
             },
         )
@@ -180,6 +183,12 @@ def main() -> None:
         help="estimate the wheel calibration (default: the log's configuration, off)",
     )
     ap.add_argument(
+        "--laser-calibration",
+        choices=LASER_CALIBRATION_CHOICES,
+        help="estimate the laser's range offset (and scale) (default: the log's "
+        "configuration, off)",
+    )
+    ap.add_argument(
         "--corners",
         choices=CORNER_CHOICES,
         help="corners with their lines (the paper), instead of them, or none (default: the "
@@ -202,6 +211,7 @@ def main() -> None:
                 figures=args.figures,
                 calibration=args.calibration,
                 corners=args.corners,
+                laser_calibration=args.laser_calibration,
             )
 
 

@@ -19,6 +19,7 @@ import gtsam
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from factors.calibrated import calibrated
 from factors.geometry import TWO_PI, sensor_pose, wrap_angle
 from factors.line import IDENTITY_MOUNT, Mount
 
@@ -105,10 +106,16 @@ def corner_factor(
     measured: ArrayLike,
     noise: gtsam.noiseModel.Base,
     mount: Mount = IDENTITY_MOUNT,
+    cal_key: int | None = None,
+    cal_jacobian: ArrayLike | None = None,
 ) -> gtsam.CustomFactor:
     """Factor between a robot ``Pose2`` and a corner ``Pose2`` for a measured
-    (phi_c, r_c, gamma) with a 3x3 noise model (full covariance allowed)."""
-    return _make_corner_factor(pose_key, corner_key, measured, noise, mount, 3)
+    (phi_c, r_c, gamma) with a 3x3 noise model (full covariance allowed). With ``cal_key``
+    (a calibration ``Vector``) the measurement reads z + ``cal_jacobian`` c
+    (:func:`factors.geometry.calibrated`)."""
+    return _make_corner_factor(
+        pose_key, corner_key, measured, noise, mount, 3, cal_key, cal_jacobian
+    )
 
 
 def corner_bearing_range_factor(
@@ -117,10 +124,15 @@ def corner_bearing_range_factor(
     measured: ArrayLike,
     noise: gtsam.noiseModel.Base,
     mount: Mount = IDENTITY_MOUNT,
+    cal_key: int | None = None,
+    cal_jacobian: ArrayLike | None = None,
 ) -> gtsam.CustomFactor:
     """Factor between a robot ``Pose2`` and a corner ``Pose2`` for a sonar corner: measured
-    (phi_c, r_c) only, 2x2 noise model; the corner's orientation is left unconstrained."""
-    return _make_corner_factor(pose_key, corner_key, measured, noise, mount, 2)
+    (phi_c, r_c) only, 2x2 noise model; the corner's orientation is left unconstrained.
+    ``cal_key``, ``cal_jacobian``: as :func:`corner_factor`."""
+    return _make_corner_factor(
+        pose_key, corner_key, measured, noise, mount, 2, cal_key, cal_jacobian
+    )
 
 
 def _make_corner_factor(
@@ -130,6 +142,8 @@ def _make_corner_factor(
     noise: gtsam.noiseModel.Base,
     mount: Mount,
     dim: int,
+    cal_key: int | None = None,
+    cal_jacobian: ArrayLike | None = None,
 ) -> gtsam.CustomFactor:
     pm, rm = float(measured[0]), float(measured[1])
     gm = float(measured[2]) if dim == 3 else 0.0
@@ -161,4 +175,6 @@ def _make_corner_factor(
             return array((remainder(phi - pm, TWO_PI), r - rm, remainder(gamma - gm, TWO_PI)))
         return array((remainder(phi - pm, TWO_PI), r - rm))
 
+    if cal_key is not None:
+        return calibrated(noise, [pose_key, corner_key], cal_key, cal_jacobian, error)
     return gtsam.CustomFactor(noise, [pose_key, corner_key], error)

@@ -19,6 +19,7 @@ import gtsam
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from factors.calibrated import calibrated
 from factors.geometry import TWO_PI, sensor_pose, wrap_angle
 
 Mount = tuple[float, float, float]
@@ -142,10 +143,14 @@ def line_factor(
     measured: ArrayLike,
     noise: gtsam.noiseModel.Base,
     mount: Mount = IDENTITY_MOUNT,
+    cal_key: int | None = None,
+    cal_jacobian: ArrayLike | None = None,
 ) -> gtsam.CustomFactor:
     """A factor between a robot ``Pose2`` and a world line ``Vector2`` (alpha_w, d_w) for a
     sensor-frame line measurement (alpha, d) with the given noise model. The pose Jacobian is
-    w.r.t. GTSAM's body tangent: world columns rotated by the robot's heading."""
+    w.r.t. GTSAM's body tangent: world columns rotated by the robot's heading. With
+    ``cal_key`` (a calibration ``Vector``) the measurement reads z + ``cal_jacobian`` c
+    (:func:`factors.geometry.calibrated`)."""
     am, dm = float(measured[0]), float(measured[1])
     mount = (float(mount[0]), float(mount[1]), float(mount[2]))
     # Per-factor Jacobian buffers: GTSAM copies them on assignment, and filling a few
@@ -170,4 +175,6 @@ def line_factor(
             H[1] = Hl
         return array((e0, e1))
 
+    if cal_key is not None:
+        return calibrated(noise, [pose_key, line_key], cal_key, cal_jacobian, error)
     return gtsam.CustomFactor(noise, [pose_key, line_key], error)

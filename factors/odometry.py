@@ -482,19 +482,28 @@ def calibrated_error(
 
 
 def calibrated_odometry_factor(
-    key_i: int, key_j: int, key_c: int, pre: Preintegrated, noise: gtsam.noiseModel.Base
+    key_i: int,
+    key_j: int,
+    key_c: int,
+    pre: Preintegrated,
+    noise: gtsam.noiseModel.Base,
+    columns: slice = slice(0, 3),
+    dim: int = 3,
 ) -> gtsam.CustomFactor:
-    """A factor between poses i, j (``Pose2``) and the wheel calibration errors (``Vector3``
-    (e_r, e_l, e_b)) for the wheel motion ``pre``: :func:`calibrated_error`, with a noise
-    model of ``pre.covariance_start`` (keyframe i's axes)."""
+    """A factor between poses i, j (``Pose2``) and the calibration errors (a ``Vector`` of
+    ``dim``, the wheels' (e_r, e_l, e_b) at ``columns``) for the wheel motion ``pre``:
+    :func:`calibrated_error`, with a noise model of ``pre.covariance_start`` (keyframe i's
+    axes)."""
+    Hfull = np.zeros((3, dim))
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
         a, b = values.atPose2(key_i), values.atPose2(key_j)
-        e, Hi, Hj, Hc = calibrated_error(
-            (a.x(), a.y(), a.theta()), (b.x(), b.y(), b.theta()), values.atVector(key_c), pre
-        )
+        c = values.atVector(key_c)[columns]
+        pa, pb = (a.x(), a.y(), a.theta()), (b.x(), b.y(), b.theta())
+        e, Hi, Hj, Hc = calibrated_error(pa, pb, c, pre)
         if H is not None:
-            H[0], H[1], H[2] = Hi, Hj, Hc
+            Hfull[:, columns] = Hc
+            H[0], H[1], H[2] = Hi, Hj, Hfull
         return e
 
     return gtsam.CustomFactor(noise, [key_i, key_j, key_c], error)

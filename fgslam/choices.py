@@ -10,6 +10,7 @@ SCANMATCH_CHOICES = {
     "loop_closures": ("on", "off"),
 }
 CALIBRATION_CHOICES = ("off", "wheels")
+LASER_CALIBRATION_CHOICES = ("off", "offset", "range")
 CORNER_CHOICES = ("with-lines", "replace-lines", "off")
 POINTS_FROM_CHOICES = ("any-echo", "unfused-echoes")
 SONAR_TIMING_CHOICES = ("scan-frame", "own-time")
@@ -21,4 +22,5 @@ CHOICES = {
     ("frontend", "points_from"): POINTS_FROM_CHOICES,
     ("sonar", "timing"): SONAR_TIMING_CHOICES,
     ("odometry", "calibration"): CALIBRATION_CHOICES,
+    ("laser", "calibration"): LASER_CALIBRATION_CHOICES,
 }

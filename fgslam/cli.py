@@ -15,7 +15,12 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from fgslam import __version__
-from fgslam.choices import CALIBRATION_CHOICES, SCANMATCH_CHOICES, SONAR_TIMING_CHOICES
+from fgslam.choices import (
+    CALIBRATION_CHOICES,
+    LASER_CALIBRATION_CHOICES,
+    SCANMATCH_CHOICES,
+    SONAR_TIMING_CHOICES,
+)
 from fgslam.errors import UserError
 
 EPILOG = """\
@@ -612,6 +617,14 @@ def _add_scanmatch_arguments(p: argparse.ArgumentParser) -> None:
         "(default: the configuration's [odometry] calibration)",
     )
     g.add_argument(
+        "--laser-calibration",
+        choices=LASER_CALIBRATION_CHOICES,
+        help="estimate the laser's range offset, or its offset and scale, with the map "
+        "(report.json: calibration; the scale is seen only against the wheels', so 'range' "
+        "needs wheels whose scale is known), instead of the paper's worst-case term in each "
+        "line and corner covariance (default: the configuration's [laser] calibration)",
+    )
+    g.add_argument(
         "--sonar-timing",
         choices=SONAR_TIMING_CHOICES,
         help="iSAM2 and batch: attach each sonar point or plane measurement to the pose at "
@@ -630,6 +643,7 @@ def _config_options(args: argparse.Namespace) -> dict[str, dict]:
             "loop_closures": getattr(args, "loops", None),
         },
         "odometry": {"calibration": getattr(args, "calibration", None)},
+        "laser": {"calibration": getattr(args, "laser_calibration", None)},
         "sonar": {"timing": getattr(args, "sonar_timing", None)},
     }
 

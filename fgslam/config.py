@@ -124,6 +124,20 @@ class LaserConfig:
     baud_rate: int
     delay_min: float
     delay_max: float
+    # which range errors are estimated (graph variable, EKF states) with the systematic
+    # estimates as prior sigmas, their worst-case terms leaving the fits' covariances (the
+    # features carry their Jacobians instead): "offset" (the scale keeps its worst case),
+    # "range" (offset and scale), "off" (the paper's worst case for both)
+    calibration: str = "off"
+
+    def calibration_prior(self) -> Any:
+        """The prior covariance of the estimated range errors (offset m; scale), or None."""
+        if self.calibration == "off":
+            return None
+        import numpy as np
+
+        sig = [self.systematic_offset, self.systematic_per_metre]
+        return np.diag(np.square(sig[: 1 if self.calibration == "offset" else 2]))
 
     @property
     def bearings(self) -> Any:
@@ -560,6 +574,15 @@ def _check_consistency(cfg: RobotConfig, src: str) -> None:
         raise ConfigError(
             f"{src}: key 'odometry.calibration_sigma': expected 3 positive numbers "
             "(right wheel, left wheel, wheelbase; relative)"
+        )
+    las = cfg.laser
+    positive = las.systematic_offset > 0 and (
+        las.systematic_per_metre > 0 or las.calibration != "range"
+    )
+    if las.calibration != "off" and not positive:
+        raise ConfigError(
+            f"{src}: key 'laser.calibration': estimating the range errors needs a positive "
+            "laser.systematic_offset (and systematic_per_metre for 'range'): their prior sigmas"
         )
     if cfg.laser.delay_max < cfg.laser.delay_min:
         raise ConfigError(f"{src}: key 'laser.delay_max': expected >= laser.delay_min")

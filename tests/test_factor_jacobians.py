@@ -221,3 +221,41 @@ def test_point_factor_matches_model(rng):
         f = point_factor(0, 1, z, np.eye(2), mount)
         np.testing.assert_allclose(f.unwhitenedError(values), 0.0, atol=1e-9)
         check_factor(point_factor(0, 1, z + rng.normal(0, 0.01, 2), np.eye(2), mount), values)
+
+
+# ---------------------------------------------------------------- calibrated measurements
+
+
+def test_calibrated_factors_read_the_measurement_moved_by_the_calibration(rng):
+    """A line or corner factor with a calibration variable c (z = h + J c): its error is the
+    plain factor's for the measurement z - J c, and its Jacobians (c's too) are checked
+    numerically."""
+    for i in range(60):
+        c = rng.normal(0, 0.01, 5)
+        pose, mount, line = line_case(rng, i)
+        zp, _, _ = predict_line(pose, line, mount)
+        meas = np.array(normalize_line(zp[0], zp[1])) + rng.normal(0, [0.01, 0.01])
+        J = rng.normal(size=(2, 5))
+        values = gtsam.Values()
+        values.insert(0, gtsam.Pose2(*pose))
+        values.insert(1, line)
+        values.insert(9, c)
+        f = line_factor(0, 1, meas, UNIT2, mount, cal_key=9, cal_jacobian=J)
+        plain = line_factor(0, 1, meas - J @ c, UNIT2, mount)
+        np.testing.assert_allclose(f.unwhitenedError(values), plain.unwhitenedError(values))
+        check_factor(f, values)
+        pose, mount, corner = corner_case(rng)
+        z, _, _ = predict_corner(pose, corner, mount)
+        meas = z + rng.normal(0, [0.01, 0.01, 0.01])
+        J = rng.normal(size=(3, 5))
+        values = gtsam.Values()
+        values.insert(0, gtsam.Pose2(*pose))
+        values.insert(1, gtsam.Pose2(*corner))
+        values.insert(9, c)
+        for dim, make in ((3, corner_factor), (2, corner_bearing_range_factor)):
+            unit = UNIT3 if dim == 3 else UNIT2
+            f = make(0, 1, meas[:dim], unit, mount, cal_key=9, cal_jacobian=J[:dim])
+            plain = make(0, 1, meas[:dim] - J[:dim] @ c, unit, mount)
+            e, e0 = f.unwhitenedError(values), plain.unwhitenedError(values)
+            np.testing.assert_allclose(wrapped_diff(e, e0, [True, False, True][:dim]), 0, atol=1e-9)
+            check_factor(f, values)

@@ -203,3 +203,69 @@ def test_corner_covariance_scaled_by_its_residual():
         nees.append(e @ np.linalg.solve(fit.cov_random, e))
         nees_raw.append(e @ np.linalg.solve(raw.cov_random, e))
     assert np.mean(nees_raw) > 6 and 2.4 < np.mean(nees) < 3.8
+
+
+# ------------------------------------------------------------------ range calibration
+
+
+def _refit(kind, p, r, init=None):
+    if kind == "line":
+        return fit_line(p, r, 0.02).params
+    return fit_corner(p, r, init, 0.02).params
+
+
+@pytest.mark.parametrize("kind", ["line", "corner"])
+def test_source_jacobian_matches_finite_differences(kind):
+    """d params / d (range offset, range scale): refitting the ranges r (1 + s) + o moves
+    the parameters by the returned Jacobian times (o, s)."""
+    if kind == "line":
+        p = PHI[np.abs(PHI - 0.2) < 0.5]
+        r, init = line_ranges(0.1, 3.0, p), None
+    else:
+        truth = np.array([-0.3, 2.5, -0.25])
+        p, r = corner_scan(*truth)
+        init = truth
+    fit = (
+        fit_line(p, r, 0.02, sources=[1.0, r])
+        if kind == "line"
+        else fit_corner(p, r, init, 0.02, sources=[1.0, r])
+    )
+    J = fit.source_jacobian
+    assert J.shape == (len(fit.params), 2)
+    for k, (o, s) in enumerate([(1e-4, 0.0), (0.0, 1e-5)]):
+        moved = _refit(kind, p, r * (1 + s) + o, init)
+        num = (moved - fit.params) / (o + s)
+        num[0] = wrap_angle(moved[0] - fit.params[0]) / (o + s)
+        np.testing.assert_allclose(num, J[:, k], rtol=1e-3, atol=1e-6)
+
+
+def test_worst_case_term_is_the_source_jacobians_weighed_by_the_bounds():
+    """The paper's worst-case term (added to the diagonal) is (|J_o| o + |J_s| s)^2 with J
+    the source Jacobians and (o, s) the configured systematic bounds: one regression."""
+    p = PHI[np.abs(PHI + 0.1) < 0.6]
+    r = line_ranges(-0.2, 4.0, p)
+    fit = fit_line(p, r, 0.02, systematic=[0.01, 0.002 * r], sources=[1.0, r])
+    expected = (np.abs(fit.source_jacobian) @ [0.01, 0.002]) ** 2
+    np.testing.assert_allclose(np.diag(fit.cov - fit.cov_random), expected, rtol=1e-9)
+
+
+def test_random_covariance_plus_calibration_covers_a_random_range_bias_monte_carlo():
+    """Monte Carlo: a range offset and scale drawn per scan from N(0, diag(1 cm, 0.2 %)^2)
+    on top of the random error; the parameters scatter as cov_random + J Sigma J^T."""
+    rng = np.random.default_rng(5)
+    truth = np.array([0.35, 2.8, 0.3])
+    p, r0 = corner_scan(*truth)
+    Sc = np.diag([0.01**2, 0.002**2])
+    errs, nees = [], []
+    for _ in range(400):
+        o, s = rng.multivariate_normal(np.zeros(2), Sc)
+        r = r0 * (1 + s) + o + rng.normal(0, 0.02, p.size)
+        fit = fit_corner(p, r, truth, 0.02, sources=[1.0, r])
+        e = fit.params - [truth[0], truth[1], truth[2] + math.pi]
+        e[0], e[2] = wrap_angle(e[0]), wrap_angle(e[2])
+        C = fit.cov_random + fit.source_jacobian @ Sc @ fit.source_jacobian.T
+        errs.append(e)
+        nees.append(e @ np.linalg.solve(C, e))
+    S = np.cov(np.array(errs).T)
+    np.testing.assert_allclose(np.sqrt(np.diag(S)), np.sqrt(np.diag(C)), rtol=0.12)
+    assert 2.6 < np.mean(nees) < 3.4

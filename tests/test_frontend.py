@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 import pytest
-from frontend_scenes import CFG, run_frontend, scene_events
+from frontend_scenes import CFG, QUIET, run_frontend, scene_events
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -17,7 +17,7 @@ from fgslam.config import ConfigError, from_dict
 from fgslam.events import LaserScan, OdometryEvent, SonarEcho, SonarReading
 from fgslam.frontend.features import End
 from fgslam.frontend.fits import line_ranges
-from fgslam.frontend.fusion import fuse
+from fgslam.frontend.fusion import fuse, fused_jacobian
 from fgslam.frontend.pipeline import FrontEnd
 from fgslam.frontend.segmentation import SegmentParams, segment_scan
 from fgslam.frontend.sonar import (
@@ -160,6 +160,23 @@ def test_partial_fusion_of_corner_range_bearing(rng):
         (True, False),
     )
     assert abs(wrap_angle(z2[0] - math.pi)) < 1e-9
+
+
+@pytest.mark.parametrize("dims", [None, 2])
+def test_fused_jacobian_matches_finite_differences(rng, dims):
+    """Moving the laser estimate by J_l c moves the fused vector by fused_jacobian's J c."""
+    for _ in range(20):
+        A, B = rng.normal(size=(3, 3)), rng.normal(size=(3, 3))
+        Cl = A @ A.T + 0.1 * np.eye(3)
+        m = 3 if dims is None else dims
+        Cs = (B @ B.T + 0.1 * np.eye(3))[:m, :m]
+        zl, zs, Jl = rng.normal(size=3), rng.normal(size=m), rng.normal(size=(3, 2))
+        ang = (False, False, False)
+        J = fused_jacobian(Cl, Cs, Jl, dims)
+        z0, _ = fuse(zl, Cl, zs, Cs, ang, dims)
+        for k in range(2):
+            z1, _ = fuse(zl + 1e-6 * Jl[:, k], Cl, zs, Cs, ang, dims)
+            np.testing.assert_allclose((z1 - z0) / 1e-6, J[:, k], atol=1e-6)
 
 
 # ------------------------------------------------------------------ sonar processing
@@ -486,3 +503,89 @@ def test_corner_keeps_the_vertex_returns_between_its_lines():
     r2[gap + 1 : gap + 3] *= 0.6  # two of them hit something in front of the corner
     got, span = support(r2)
     assert got == span - 2
+
+
+@pytest.mark.parametrize("mode", ["laser", "fused"])
+def test_feature_calibration_jacobian_predicts_a_range_bias(mode):
+    """The same scan with the laser's ranges read as r (1 + s) + o: every laser and fused
+    feature (robot frame, after fusion) moves by its Jc (o, s), to first order."""
+    import dataclasses
+
+    cfg = dataclasses.replace(CFG, laser=dataclasses.replace(CFG.laser, range_resolution=1e-4))
+    o, s = 0.006, 0.002
+    biased = dataclasses.replace(QUIET, laser_sys_offset=o, laser_sys_per_metre=s)
+    runs = []
+    for p in (QUIET, biased):
+        evs, _ = scene_events(ROOM, (0.3, -0.2, 0.4), seed=4, params=p, cfg=cfg)
+        runs.append([f for sf in run_frontend(evs, mode, cfg) for f in sf.features])
+    a, b = runs
+    assert [f.kind for f in a] == [f.kind for f in b]
+    moved = 0
+    for fa, fb in zip(a, b, strict=True):
+        if fa.source == "sonar":
+            assert fa.Jc is None
+            continue
+        dz = fb.z - fa.z
+        dz[0] = wrap_angle(dz[0])
+        if len(dz) == 3:
+            dz[2] = wrap_angle(dz[2])
+        pred = fa.Jc @ [o, s]
+        np.testing.assert_allclose(dz, pred, atol=5e-4 + 0.1 * np.abs(pred).max())
+        moved += np.abs(pred).max() > 0.005
+    assert moved >= 3  # the walls moved by more than 5 mm or rad
+
+
+def test_range_calibration_leaves_the_worst_case_term_out():
+    """With the laser's range errors estimated the features' covariances leave out their
+    worst-case terms: offset estimated, smaller than the paper's; offset and scale, smaller
+    still (the random errors only); z and Jc unchanged."""
+    import dataclasses
+
+    evs, _ = scene_events(ROOM, (0.0, 0.0, 0.0), seed=3)
+    runs = []
+    for cal in ("off", "offset", "range"):
+        cfg = dataclasses.replace(CFG, laser=dataclasses.replace(CFG.laser, calibration=cal))
+        (sf,) = run_frontend(evs, "laser", cfg)
+        runs.append(sf.features)
+    assert len(runs[0]) == len(runs[1]) == len(runs[2]) >= 4
+    for fa, fb, fc in zip(*runs, strict=True):
+        for f in (fb, fc):
+            np.testing.assert_allclose(f.z, fa.z, atol=1e-9)
+            np.testing.assert_allclose(f.Jc, fa.Jc, atol=1e-9)
+        # each worst-case term adds to every component (a scale's can be ~0 on one)
+        assert np.all(np.diag(fc.cov) <= np.diag(fb.cov) + 1e-15)
+        assert np.any(np.diag(fc.cov) < np.diag(fb.cov))
+        assert np.all(np.diag(fb.cov) < np.diag(fa.cov))
+
+
+def test_fused_feature_calibration_jacobian_predicts_a_range_bias():
+    """As above through the laser-sonar fusion: on 30 s of the simulated corridor, the fused
+    lines and corners move by their Jc (o, s) when the laser's ranges are biased."""
+    import dataclasses
+
+    from fgslam.config import load_config
+    from fgslam.sim.simulate import events, plan_run
+    from fgslam.sim.world import load_world
+
+    cfg, w = load_config(), load_world("corridor")
+    cfg = dataclasses.replace(cfg, laser=dataclasses.replace(cfg.laser, range_resolution=1e-4))
+    o, s = 0.004, 0.001
+    quiet = dataclasses.replace(QUIET, laser_sigma=0.01)
+    biased = dataclasses.replace(quiet, laser_sys_offset=o, laser_sys_per_metre=s)
+    run = plan_run(w, cfg, seed=2, duration=30.0)
+    a, b = (run_frontend(list(events(w, cfg, run, p)), "fused", cfg) for p in (quiet, biased))
+    checked = 0
+    for sa, sb in zip(a, b, strict=True):
+        if [(f.kind, f.source) for f in sa.features] != [(f.kind, f.source) for f in sb.features]:
+            continue
+        for fa, fb in zip(sa.features, sb.features, strict=True):
+            if fa.source != "fused":
+                continue
+            dz = fb.z - fa.z
+            dz[0] = wrap_angle(dz[0])
+            if len(dz) == 3:
+                dz[2] = wrap_angle(dz[2])
+            pred = fa.Jc @ [o, s]
+            np.testing.assert_allclose(dz, pred, atol=5e-4 + 0.1 * np.abs(pred).max())
+            checked += 1
+    assert checked >= 5

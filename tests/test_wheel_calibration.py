@@ -121,6 +121,25 @@ def test_calibrated_error_jacobians(seed):
         np.testing.assert_allclose(A, N, atol=1e-5, rtol=1e-5)
 
 
+def test_calibrated_odometry_factor_with_the_wheels_inside_a_longer_calibration(rng):
+    """The wheels' (e_r, e_l, e_b) at columns 1:4 of a 5-vector c: the same error as the
+    3-vector factor, zero Jacobian in the other columns, checked numerically."""
+    pre = preintegrate(*random_samples(rng), PARAMS)
+    c5 = rng.normal(0, 0.01, 5)
+    values = gtsam.Values()
+    values.insert(0, gtsam.Pose2(0.1, -0.2, 0.3))
+    values.insert(1, gtsam.Pose2(0.9, 0.1, 0.5))
+    values.insert(2, c5)
+    noise = gtsam.noiseModel.Gaussian.Covariance(pre.covariance_start)
+    f = calibrated_odometry_factor(0, 1, 2, pre, noise, slice(1, 4), 5)
+    e, *_ = calibrated_error((0.1, -0.2, 0.3), (0.9, 0.1, 0.5), c5[1:4], pre)
+    np.testing.assert_allclose(f.unwhitenedError(values), e, atol=1e-12)
+    A = factor_analytic_jacobians(f, values)
+    for a, n in zip(A, factor_numeric_jacobians(f, values), strict=True):
+        np.testing.assert_allclose(a, n, atol=1e-5, rtol=1e-5)
+    np.testing.assert_allclose(A[2][:, [0, 4]], 0)
+
+
 @pytest.fixture(scope="module")
 def biased_room():
     """The room run with wheel radii and wheelbase 2 %, -1.5 % and 2.5 % off their nominal

@@ -56,7 +56,10 @@ class Feature:
     and last point projected on the line, in scan order) and corners (the ends of both arms).
     ``support`` counts laser points and sonar readings; ``sources`` says which sensors
     measured z ("laser", "sonar" or "fused"). ``own``: a sonar-only point or plane feature's
-    measurement at the reading's own time (None for the others).
+    measurement at the reading's own time (None for the others). ``Jc`` (len(z), 2): dz / d
+    (laser range offset in m, laser range scale in m per m), through the fit, the fusion
+    and the mount (None: no laser range in z); where the laser's calibration is estimated
+    (:mod:`fgslam.slam.calibration`) ``cov`` leaves out the fits' worst-case systematic term.
     """
 
     kind: str
@@ -71,6 +74,7 @@ class Feature:
     sonar_support: int = 0
     sonar_readings: tuple[SonarReading, ...] = field(default=(), repr=False)
     own: OwnTime | None = field(default=None, repr=False)
+    Jc: NDArray[np.float64] | None = field(default=None, repr=False)
 
 
 @dataclass

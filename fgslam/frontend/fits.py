@@ -48,6 +48,8 @@ class Fit:
     used: NDArray[np.bool_]
     history: list[NDArray[np.float64]] = field(default_factory=list)
     scale: float = 1.0  # variance factor from the fit's own residual (residual_scale)
+    # d params / d s for each unit range-error source s of ``sources`` (one column each)
+    source_jacobian: NDArray[np.float64] | None = None
 
 
 def _prepare(phi: ArrayLike, r: ArrayLike, min_points: int):
@@ -89,8 +91,10 @@ def _chi2_quantile(level: float, dof: int) -> float:
     return float(chi2.ppf(level, dof))
 
 
-def _covariances(H, sigma_r, systematic, used, scale=1.0):
-    """scale sigma_r^2 (H^T H)^-1, and that plus the systematic worst case on the diagonal."""
+def _covariances(H, sigma_r, systematic, used, scale=1.0, sources=()):
+    """scale sigma_r^2 (H^T H)^-1, that plus the systematic worst case on the diagonal, and
+    the parameters' Jacobian (H^T H)^-1 H^T e w.r.t. each unit source e of ``sources``
+    (None without sources)."""
     HtH = H.T @ H
     cond = np.linalg.cond(HtH)
     if not np.isfinite(cond) or cond > 1e12:
@@ -101,7 +105,13 @@ def _covariances(H, sigma_r, systematic, used, scale=1.0):
     for e in systematic:
         e = np.broadcast_to(np.asarray(e, dtype=float), used.shape)[used]
         sys_sum += np.abs(inv @ (H.T @ e))
-    return cov_random + np.diag(sys_sum**2), cov_random
+    J = None
+    if len(sources):
+        E = np.column_stack(
+            [np.broadcast_to(np.asarray(e, dtype=float), used.shape)[used] for e in sources]
+        )
+        J = inv @ (H.T @ E)
+    return cov_random + np.diag(sys_sum**2), cov_random, J
 
 
 # ------------------------------------------------------------------ lines
@@ -130,10 +140,14 @@ def fit_line(
     systematic: Sequence[ArrayLike] = (),
     max_iter: int = 10,
     residual_test: float | None = None,
+    sources: Sequence[ArrayLike] = (),
 ) -> Fit:
     """Fit (alpha, d) to laser points by minimising squared range residuals.
 
     ``systematic``: per-source systematic range errors (m), each a scalar or one per beam.
+    ``sources``: unit range-error sources (m per unit, e.g. 1 for an offset and r for a
+    scale), each a scalar or one per beam, whose Jacobians the fit returns
+    (:attr:`Fit.source_jacobian`).
     ``residual_test``: a chi-square level (e.g. :data:`RESIDUAL_TEST`), see
     :func:`residual_scale` (a wall that is not planar, or noisier than ``sigma_r``, gets the
     covariance of its own residual); None (default): the range model alone.
@@ -163,9 +177,10 @@ def fit_line(
     H = np.column_stack([d * np.sin(alpha - p) / c**2, 1.0 / c])
     res = rr - d / c
     scale = residual_scale(res, 2, sigma_r, residual_test)
-    cov, cov_random = _covariances(H, sigma_r, systematic, ok, scale)
+    cov, cov_random, J = _covariances(H, sigma_r, systematic, ok, scale, sources)
     rms = float(np.sqrt(np.mean(res**2)))
-    return Fit(np.array([wrap_angle(alpha), d]), cov, cov_random, it, rms, ok, scale=scale)
+    params = np.array([wrap_angle(alpha), d])
+    return Fit(params, cov, cov_random, it, rms, ok, scale=scale, source_jacobian=J)
 
 
 # ------------------------------------------------------------------ corners
@@ -202,6 +217,7 @@ def fit_corner(
     max_iter: int = 20,
     keep_history: bool = False,
     residual_test: float | None = None,
+    sources: Sequence[ArrayLike] = (),
 ) -> Fit:
     """Fit a right-angle corner by iterated linear regression (paper eqs 13-19).
 
@@ -209,6 +225,7 @@ def fit_corner(
     iteration beams whose predicted range is negative or more than twice the measured range
     are dropped. The result's ``params`` are (phi_c, r_c, gamma) in the project's convention:
     gamma = gamma_p + pi, the bisector pointing from the vertex into free space.
+    ``systematic``, ``sources``: as :func:`fit_line`.
     Raises :class:`FitRejected` (too few points on a side, divergence, ill-conditioning).
     """
     phi, r, ok = _prepare(phi, r, 5)
@@ -258,7 +275,7 @@ def fit_corner(
         raise FitRejected("not_facing", "a wall of the corner faces away from the sensor")
     res = (r - pred)[used]
     scale = residual_scale(res, 3, sigma_r, residual_test)
-    cov, cov_random = _covariances(H[used], sigma_r, systematic, used, scale)
+    cov, cov_random, J = _covariances(H[used], sigma_r, systematic, used, scale, sources)
     rms = float(np.sqrt(np.mean(res**2)))
     params = np.array([wrap_angle(b[0]), b[1], wrap_angle(b[2] + math.pi)])
-    return Fit(params, cov, cov_random, it, rms, used, history, scale)
+    return Fit(params, cov, cov_random, it, rms, used, history, scale, J)

@@ -39,8 +39,25 @@ def fuse(
     for k, ang in enumerate(angular[:m]):
         if ang:
             innov[k] = wrap_angle(innov[k])
-    S = C_l[:m, :m] + C_s
-    K = np.linalg.solve(S, H @ C_l).T  # C_l H^T S^-1 (S and C_l symmetric)
+    K = _gain(C_l, C_s, m)
     z = z_l + K @ innov
     C = C_l - K @ H @ C_l
     return z, 0.5 * (C + C.T)
+
+
+def fused_jacobian(
+    C_l: ArrayLike, C_s: ArrayLike, J_l: ArrayLike, dims: int | None = None
+) -> NDArray[np.float64]:
+    """The fused vector's Jacobian (I - K H) J_l w.r.t. what the laser estimate's Jacobian
+    ``J_l`` is taken against (e.g. the laser's range calibration, which the sonar does not
+    involve), with the gain of :func:`fuse` for the same covariances."""
+    C_l = np.asarray(C_l, dtype=float)
+    J_l = np.asarray(J_l, dtype=float)
+    m = C_l.shape[0] if dims is None else dims
+    return J_l - _gain(C_l, np.asarray(C_s, dtype=float), m) @ J_l[:m]
+
+
+def _gain(C_l: NDArray[np.float64], C_s: NDArray[np.float64], m: int) -> NDArray[np.float64]:
+    """K = C_l H^T (H C_l H^T + C_s)^-1 with H the first ``m`` rows of the identity."""
+    S = C_l[:m, :m] + C_s
+    return np.linalg.solve(S, C_l[:m, :]).T  # S and C_l symmetric

@@ -38,7 +38,7 @@ from fgslam.config import RobotConfig
 from fgslam.events import Event, LaserScan, OdometryEvent, SonarReading
 from fgslam.frontend.features import End, Feature, OwnTime, ScanFeatures
 from fgslam.frontend.fits import FitRejected, corner_ranges, fit_corner, fit_line
-from fgslam.frontend.fusion import fuse
+from fgslam.frontend.fusion import fuse, fused_jacobian
 from fgslam.frontend.segmentation import Segment, SegmentParams, segment_scan
 from fgslam.frontend.sonar import (
     Cluster,
@@ -74,6 +74,10 @@ class FrontEndParams:
     residual_level: float | None = None  # fits: residual covariance scaling (None: off)
     corners: str = "with-lines"  # or "replace-lines", "off": FrontendConfig.corners
     points_from: str = "any-echo"  # or "unfused-echoes": FrontendConfig.points_from
+    # which of the laser's range errors are estimated (LaserConfig.calibration: "off",
+    # "offset", "range"): their worst-case terms leave the covariances (the features always
+    # carry the Jacobians of both, Feature.Jc)
+    range_calibration: str = "off"
 
 
 def frontend_params(cfg: RobotConfig, base: FrontEndParams | None = None) -> FrontEndParams:
@@ -97,6 +101,7 @@ def frontend_params(cfg: RobotConfig, base: FrontEndParams | None = None) -> Fro
         residual_level=th["residual_level"],
         corners=cfg.frontend.corners,
         points_from=cfg.frontend.points_from,
+        range_calibration=cfg.laser.calibration,
     )
 
 
@@ -294,8 +299,17 @@ class FrontEnd:
     # ------------------------------------------------------------------ laser features
 
     def _systematic(self, r):
+        """The fits' worst-case systematic range errors (m) of the sources not estimated."""
         las = self.cfg.laser
-        return [np.full(r.shape, las.systematic_offset), las.systematic_per_metre * r]
+        scale = [] if self.p.range_calibration == "range" else [las.systematic_per_metre * r]
+        if self.p.range_calibration != "off":
+            return scale
+        return [np.full(r.shape, las.systematic_offset), *scale]
+
+    @staticmethod
+    def _sources(r):
+        """Unit range-error sources: the offset (1 m per m) and the scale (r m per unit)."""
+        return [np.ones(r.shape), r]
 
     def _line(self, seg: Segment, phi, r, pts: SonarPoints | None, stats) -> Feature | None:
         p, rr = phi[seg.first : seg.last + 1], r[seg.first : seg.last + 1]
@@ -306,6 +320,7 @@ class FrontEnd:
                 self.cfg.laser.sigma_range,
                 self._systematic(rr),
                 residual_test=self.p.residual_level,
+                sources=self._sources(rr),
             )
         except FitRejected as exc:
             stats[f"lines_rejected_{exc.reason}"] += 1
@@ -327,6 +342,7 @@ class FrontEnd:
             seg.start,
             seg.end,
             laser_support=int(fit.used.sum()),
+            Jc=fit.source_jacobian,
         )
         if pts is not None and len(pts):
             f.sonar_support = int(np.sum(_seg_dist(pts.xy, f.endpoints) < self.p.support_dist))
@@ -385,6 +401,7 @@ class FrontEnd:
                     self._systematic(r[sl]),
                     convex=convex,
                     residual_test=self.p.residual_level,
+                    sources=self._sources(r[sl]),
                 )
             except FitRejected as exc:
                 stats[f"corners_rejected_{exc.reason}"] += 1
@@ -399,6 +416,7 @@ class FrontEnd:
                 np.array([l1.endpoints[0], l2.endpoints[1]]),
                 convex=convex,
                 laser_support=int(fit.used.sum()),
+                Jc=fit.source_jacobian,
             )
             if pts is not None and len(pts):
                 vx, vy = (
@@ -456,6 +474,8 @@ class FrontEnd:
                     if _seg_dist(pts.xy[i : i + 1], f.endpoints)[0] > 0.2:
                         continue
                     zs = f.z + e  # the sonar line in the laser line's (alpha, d) form
+                    if f.Jc is not None:
+                        f.Jc = fused_jacobian(f.cov, Cs, f.Jc)
                     f.z, f.cov = fuse(f.z, f.cov, zs, Cs, angular=(True, False))
                     f.source = "fused"
                     used[i] = True
@@ -467,6 +487,8 @@ class FrontEnd:
                     e = np.array([wrap_angle(zs[0] - f.z[0]), zs[1] - f.z[1]])
                     if e @ np.linalg.solve(f.cov[:2, :2] + Cs, e) > CHI2_2_99:
                         continue
+                    if f.Jc is not None:
+                        f.Jc = fused_jacobian(f.cov, Cs, f.Jc, dims=2)
                     f.z, f.cov = fuse(f.z, f.cov, f.z[:2] + e, Cs, angular=(True, False), dims=2)
                     f.source = "fused"
                     used[i] = True
@@ -526,18 +548,18 @@ class FrontEnd:
         """Laser frame -> robot frame (the laser's mount); sonar points were moved with it."""
         m = self.mount
         if f.kind == "line":
-            z, _, Hz = line_to_world(m, f.z, (0.0, 0.0, 0.0))
-            f.z, f.cov = z, Hz @ f.cov @ Hz.T
+            z, _, J = line_to_world(m, f.z, (0.0, 0.0, 0.0))
         elif f.kind == "corner":
             c, _, Hz = corner_to_world(m, f.z)
             z, _, Hc = predict_corner((0.0, 0.0, 0.0), c)
             J = Hc @ Hz
-            f.z, f.cov = z, J @ f.cov @ J.T
         else:
             q, _, Hz = point_to_world(m, f.z)
             z, _, Hp = predict_point((0.0, 0.0, 0.0), q)
             J = Hp @ Hz
-            f.z, f.cov = z, J @ f.cov @ J.T
+        f.z, f.cov = z, J @ f.cov @ J.T
+        if f.Jc is not None:
+            f.Jc = J @ f.Jc
         f.cov = 0.5 * (f.cov + f.cov.T)
         if f.endpoints is not None:
             c, s = math.cos(m[2]), math.sin(m[2])

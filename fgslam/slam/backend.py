@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from abc import ABC, abstractmethod
 
 import numpy as np
@@ -71,9 +72,25 @@ class Backend(ABC):
     def calibration_estimate(
         self,
     ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None] | None:
-        """The wheel calibration errors (e_r, e_l, e_b) and their covariance (None: not
-        known), or None when the backend does not estimate them."""
+        """The calibration errors c (:class:`fgslam.slam.calibration.Calibration`) and their
+        covariance (None: not known), or None when the backend does not estimate them."""
         return None
+
+    def laser_calibration_cov(self) -> NDArray[np.float64] | None:
+        """The current marginal covariance of the laser's estimated range errors (offset, and
+        scale if estimated: 1x1 or 2x2), or None when they are not estimated."""
+        return None
+
+    def for_association(self, f: Feature) -> Feature:
+        """``f`` as association and the tentative map should weigh it: where the laser's range
+        errors are estimated (its ``cov`` then random only), with their uncertainty added,
+        Jc S Jc^T (S their current marginal; conservative: the landmarks' correlation with
+        them, which would cancel part of it, is left out)."""
+        S = self.laser_calibration_cov()
+        if S is None or f.Jc is None:
+            return f
+        J = f.Jc[:, : len(S)]  # the columns of the parts estimated (offset first)
+        return dataclasses.replace(f, cov=f.cov + J @ S @ J.T)
 
     def keyframe_poses(self) -> NDArray[np.float64]:
         """Current estimates (x, y, theta) of the keyframes before the current one."""

@@ -22,6 +22,7 @@ from factors.odometry import Preintegrated, fuse_motions, link_motions, with_cal
 from fgslam.frontend.features import Feature
 from fgslam.slam import models
 from fgslam.slam.backend import Backend, Estimate
+from fgslam.slam.calibration import Calibration, as_calibration
 
 
 class EkfBackend(Backend):
@@ -30,11 +31,12 @@ class EkfBackend(Backend):
     (counted as ``ekf_rejected``); where R is tiny (the merge pseudo-measurement) the update
     is in Joseph form, which keeps P positive semi-definite for any gain.
 
-    ``calibration``: the prior covariance (3x3) of the wheel calibration errors (e_r, e_l,
-    e_b), then three states after the pose, predicted through the wheel odometry's
-    Jacobian w.r.t. them (a link fused with a scan match through the fusion's Jacobian,
-    :func:`factors.odometry.fuse_motions`; a scan match alone does not involve them);
-    None: off."""
+    ``calibration``: the calibration errors c to estimate (:class:`Calibration`, or the 3x3
+    prior covariance of the wheel errors (e_r, e_l, e_b) alone), then states 3:3+dim after
+    the pose: the wheel part predicted through the wheel odometry's Jacobian w.r.t. it (a
+    link fused with a scan match through the fusion's Jacobian,
+    :func:`factors.odometry.fuse_motions`; a scan match alone does not involve it), the
+    laser part in every line and corner update (:attr:`Feature.Jc`); None: off."""
 
     name = "ekf"
     supports_loops = False  # a filter keeps no past pose to close a loop on
@@ -43,10 +45,11 @@ class EkfBackend(Backend):
         self,
         gate_p: float | None = 0.9999,
         motion_gate_p: float = 0.999,
-        calibration: NDArray[np.float64] | None = None,
+        calibration: Calibration | NDArray[np.float64] | None = None,
     ) -> None:
         super().__init__()
-        self.calibration = None if calibration is None else np.array(calibration, dtype=float)
+        self.cal = as_calibration(calibration)
+        self.nc = 0 if self.cal is None else self.cal.dim  # states 3:3+nc
         # None: no gate (the association is given and trusted, e.g. Victoria Park's file)
         self.gate = {n: float(chi2.ppf(gate_p, n)) if gate_p else math.inf for n in (1, 2, 3)}
         self.motion_gate = float(chi2.ppf(motion_gate_p, 3))
@@ -59,10 +62,10 @@ class EkfBackend(Backend):
     def start(self, t: float, pose: NDArray[np.float64], cov: NDArray[np.float64]) -> None:
         self.x = np.array(pose, dtype=float)
         self.P = np.array(cov, dtype=float)
-        if self.calibration is not None:  # states 3:6, before any landmark
-            self.x = np.concatenate([self.x, np.zeros(3)])
-            P = np.zeros((6, 6))
-            P[:3, :3], P[3:, 3:] = self.P, self.calibration
+        if self.cal is not None:  # states 3:3+nc, before any landmark
+            self.x = np.concatenate([self.x, np.zeros(self.nc)])
+            P = np.zeros((3 + self.nc, 3 + self.nc))
+            P[:3, :3], P[3:, 3:] = self.P, self.cal.prior
             self.P = P
         self._pending_t = t
 
@@ -74,9 +77,10 @@ class EkfBackend(Backend):
         ``motion_gate_p`` (:func:`factors.odometry.link_motions`, counted as
         ``motion_disagreements``): a filter must commit to one motion where the graph keeps
         both as robust factors and lets the landmarks and loops decide."""
-        if self.calibration is not None and pre is not None:
+        wcal = None if self.cal is None else self.cal.wheels  # the wheel part of c
+        if wcal is not None and pre is not None:
             if pre.calibration_jacobian is not None:
-                pre = with_calibration(pre, self.x[3:6])
+                pre = with_calibration(pre, self.x[3:][wcal])
         if pre is None or scan is None:
             pre = pre or scan
             if pre is None:
@@ -96,10 +100,12 @@ class EkfBackend(Backend):
         G = np.eye(3)
         G[:2, :2] = [[c, -s], [s, c]]
         P = self.P
-        if self.calibration is not None and pre.calibration_jacobian is not None:
-            Gc = G @ pre.calibration_jacobian  # the pose moves with the calibration errors
-            P[:3, :] = F @ P[:3, :] + Gc @ P[3:6, :]
-            P[:, :3] = P[:, :3] @ F.T + P[:, 3:6] @ Gc.T
+        if wcal is not None and pre.calibration_jacobian is not None:
+            # the pose moves with the calibration errors
+            Gc = G @ self.cal.wheel_jacobian(pre.calibration_jacobian)
+            c = slice(3, 3 + self.nc)
+            P[:3, :] = F @ P[:3, :] + Gc @ P[c, :]
+            P[:, :3] = P[:, :3] @ F.T + P[:, c] @ Gc.T
         else:
             P[:3, :] = F @ P[:3, :]
             P[:, :3] = P[:, :3] @ F.T
@@ -168,21 +174,42 @@ class EkfBackend(Backend):
             ang.extend(o + i for i, a in enumerate(models.ANGULAR[kind]) if a)
         self._angles = np.array(sorted(ang), dtype=np.intp)
 
+    def _cal_jacobian(self, f: Feature) -> NDArray[np.float64] | None:
+        return None if self.cal is None else self.cal.measurement_jacobian(f.Jc)
+
+    def laser_calibration_cov(self) -> NDArray[np.float64] | None:
+        if self.cal is None or self.cal.laser is None:
+            return None
+        sl = slice(3 + self.cal.laser.start, 3 + self.cal.laser.stop)
+        return self.P[sl, sl].copy()
+
     def observe(self, lid: int, f: Feature) -> None:
         o, kind = self.index[lid]
         n = models.DIM[kind]
         e, Hx, Hl = models.residual(kind, self.x[:3], self.x[o : o + n], f.z)
-        cols = np.r_[0:3, o : o + n]
-        self._update(e, np.hstack([Hx, Hl]), f.cov, cols, gate=True)
+        J = self._cal_jacobian(f)
+        if J is None:
+            cols = np.r_[0:3, o : o + n]
+            self._update(e, np.hstack([Hx, Hl]), f.cov, cols, gate=True)
+            return
+        # z = h + J c: the residual and its Jacobian gain the calibration's columns
+        e = e + J @ self.x[3 : 3 + self.nc]
+        cols = np.r_[0 : 3 + self.nc, o : o + n]
+        self._update(e, np.hstack([Hx, J, Hl]), f.cov, cols, gate=True)
 
     def add_landmark(self, lid: int, f: Feature) -> None:
         kind = f.kind
-        lm, Hx, Hz = models.to_world(kind, self.x[:3], f.z)
+        J = self._cal_jacobian(f)
+        z = f.z if J is None else f.z - J @ self.x[3 : 3 + self.nc]
+        lm, Hx, Hz = models.to_world(kind, self.x[:3], z)
         n0 = self.x.size
         n = lm.size
         P = self.P
-        Pxl = Hx @ P[:3, :]  # cross-covariance of the new landmark with the whole state
-        Pll = Hx @ P[:3, :3] @ Hx.T + Hz @ f.cov @ Hz.T
+        if J is not None:  # the landmark also moves with the calibration: -Hz J
+            Hx = np.hstack([Hx, -Hz @ J])
+        m = Hx.shape[1]
+        Pxl = Hx @ P[:m, :]  # cross-covariance of the new landmark with the whole state
+        Pll = Hx @ P[:m, :m] @ Hx.T + Hz @ f.cov @ Hz.T
         newP = np.zeros((n0 + n, n0 + n))
         newP[:n0, :n0] = P
         newP[n0:, :n0] = Pxl
@@ -218,10 +245,11 @@ class EkfBackend(Backend):
     def calibration_estimate(
         self,
     ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None] | None:
-        """The wheel calibration errors (e_r, e_l, e_b) and their covariance, or None."""
-        if self.calibration is None:
+        """The calibration errors c (:class:`Calibration`) and their covariance, or None."""
+        if self.cal is None:
             return None
-        return self.x[3:6].copy(), self.P[3:6, 3:6].copy()
+        c = slice(3, 3 + self.nc)
+        return self.x[c].copy(), self.P[c, c].copy()
 
     def landmark_covariances(self) -> dict[int, NDArray[np.float64]]:
         return {

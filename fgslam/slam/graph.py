@@ -37,6 +37,7 @@ from fgslam.errors import UserError
 from fgslam.frontend.features import Feature
 from fgslam.slam import models
 from fgslam.slam.backend import Backend, Estimate
+from fgslam.slam.calibration import Calibration, as_calibration
 
 
 def X(k: int) -> int:
@@ -47,7 +48,7 @@ def L(i: int) -> int:
     return gtsam.symbol("l", i)
 
 
-# the wheel calibration errors (e_r, e_l, e_b), one Vector3 for the whole run
+# the calibration errors (fgslam.slam.calibration.Calibration), one Vector for the whole run
 C = gtsam.symbol("c", 0)
 
 
@@ -83,11 +84,12 @@ class GraphBackend(Backend):
     landmarks each keyframe touched; association uses it only to pick candidates (a loose
     pre-gate), the gate itself the fresh :meth:`estimate`.
 
-    ``calibration``: the prior covariance (3x3) of the wheel calibration errors (e_r, e_l,
-    e_b) (relative errors of the right and left wheel distances and of the wheelbase), which
-    then become one variable ``C`` of the graph, in every wheel odometry factor
-    (:func:`factors.odometry.calibrated_odometry_factor`); None: the nominal calibration is
-    taken as exact. :meth:`calibration_estimate` reads it.
+    ``calibration``: the calibration errors to estimate (:class:`Calibration`, or the 3x3
+    prior covariance of the wheel errors (e_r, e_l, e_b) alone), one variable ``C`` of the
+    graph: its wheel part in every wheel odometry factor
+    (:func:`factors.odometry.calibrated_odometry_factor`), its laser part in every line and
+    corner factor (:attr:`Feature.Jc`); None: the nominal calibration is taken as exact.
+    :meth:`calibration_estimate` reads it.
     """
 
     name = "isam2"
@@ -103,7 +105,7 @@ class GraphBackend(Backend):
         max_final_updates: int = 20,
         converge_tol: float = 0.01,
         loop_updates: int = 2,
-        calibration: NDArray[np.float64] | None = None,
+        calibration: Calibration | NDArray[np.float64] | None = None,
         sonar_timing: str = "scan-frame",
     ) -> None:
         super().__init__()
@@ -111,8 +113,9 @@ class GraphBackend(Backend):
             raise ValueError(f"unknown sonar timing {sonar_timing!r}")
         self.own_time = sonar_timing == "own-time"
         self.stats: Counter = Counter()  # sonar_own_time: measurements at their own time
-        self.calibration = None if calibration is None else np.array(calibration, dtype=float)
-        self._c = np.zeros(3)  # the calibration errors' current estimate
+        self.cal = as_calibration(calibration)
+        self._c = np.zeros(0 if self.cal is None else self.cal.dim)  # c's current estimate
+        self._c_cov: NDArray[np.float64] | None = None  # c's marginal after the last commit
         self._calibrated = False  # the last link's wheels carry the calibration
         self.solution: GraphSolution | None = None  # after finish()
         self.covariances = covariances
@@ -158,10 +161,11 @@ class GraphBackend(Backend):
             gtsam.PriorFactorPose2(X(0), p, gtsam.noiseModel.Gaussian.Covariance(R.T @ cov @ R))
         )
         self.new_values.insert(X(0), p)
-        if self.calibration is not None:
-            self.new_values.insert(C, np.zeros(3))
-            prior = gtsam.noiseModel.Gaussian.Covariance(self.calibration)
-            self.new_graph.add(gtsam.PriorFactorVector(C, np.zeros(3), prior))
+        if self.cal is not None:
+            self.new_values.insert(C, np.zeros(self.cal.dim))
+            prior = gtsam.noiseModel.Gaussian.Covariance(self.cal.prior)
+            self.new_graph.add(gtsam.PriorFactorVector(C, np.zeros(self.cal.dim), prior))
+            self._c_cov = self.cal.prior.copy()
         self._pose_pred = np.array(pose, dtype=float)
         self._pending_t = t
 
@@ -178,19 +182,24 @@ class GraphBackend(Backend):
         if not motions:
             raise ValueError("predict needs the wheel odometry, a scan match or both")
         kernel = self.robust if len(motions) > 1 else "none"
-        self._calibrated = self.calibration is not None and (
-            pre is not None and pre.calibration_jacobian is not None
+        cal = self.cal
+        self._calibrated = (
+            cal is not None
+            and cal.wheels is not None
+            and (pre is not None and pre.calibration_jacobian is not None)
         )
         for m in motions:
             if m is pre and self._calibrated:
                 noise = models.noise_model(m.covariance_start, kernel)
-                f = calibrated_odometry_factor(X(self.k - 1), X(self.k), C, m, noise)
+                f = calibrated_odometry_factor(
+                    X(self.k - 1), X(self.k), C, m, noise, cal.wheels, cal.dim
+                )
                 self.new_graph.add(f)
                 continue
             noise = models.noise_model(m.covariance, kernel)
             self.new_graph.add(gtsam.BetweenFactorPose2(X(self.k - 1), X(self.k), m.delta, noise))
         if self._calibrated:
-            pre = with_calibration(pre, self._c)
+            pre = with_calibration(pre, self._c[cal.wheels])
         if pre is None or scan is None:
             self._pre = pre or scan
         else:
@@ -272,7 +281,7 @@ class GraphBackend(Backend):
         J = self.isam.jointMarginalCovariance(keys).fullMatrix()
         # tangent (body) -> world for Pose2 blocks
         prev = self._prev
-        blocks = [_rot_block(prev.theta())] + ([np.eye(3)] if cal else [])
+        blocks = [_rot_block(prev.theta())] + ([np.eye(self.cal.dim)] if cal else [])
         for lid in lids:
             blocks.append(models.KINDS[self.kinds[lid]].tangent_to_world(means[lid]))
         T = _blockdiag(blocks)
@@ -285,10 +294,11 @@ class GraphBackend(Backend):
         F = np.array([[1.0, 0.0, -s * dx - c * dy], [0.0, 1.0, c * dx - s * dy], [0.0, 0.0, 1.0]])
         G = _rot_block(th)
         if cal:  # the pose also moves with the calibration errors: rows [F, G J_c]
-            Gc = G @ pre.calibration_jacobian
-            P[:3, :] = F @ P[:3, :] + Gc @ P[3:6, :]
-            P[:, :3] = P[:, :3] @ F.T + P[:, 3:6] @ Gc.T
-            P = np.delete(np.delete(P, np.s_[3:6], axis=0), np.s_[3:6], axis=1)
+            Gc = G @ self.cal.wheel_jacobian(pre.calibration_jacobian)
+            c = np.s_[3 : 3 + self.cal.dim]
+            P[:3, :] = F @ P[:3, :] + Gc @ P[c, :]
+            P[:, :3] = P[:, :3] @ F.T + P[:, c] @ Gc.T
+            P = np.delete(np.delete(P, c, axis=0), c, axis=1)
         else:
             P[:3, :] = F @ P[:3, :]
             P[:, :3] = P[:, :3] @ F.T
@@ -304,7 +314,9 @@ class GraphBackend(Backend):
     def add_landmark(self, lid: int, f: Feature) -> None:
         self.kinds[lid] = f.kind
         self._touched.add(lid)
-        lm, _, _ = models.to_world(f.kind, self._pose_pred, f.z)
+        J = self._cal_jacobian(f)
+        z = f.z if J is None else f.z - J @ self._c  # the measurement, calibrated
+        lm, _, _ = models.to_world(f.kind, self._pose_pred, z)
         self.new_values.insert(L(lid), models.value(f.kind, lm))
         self.new_graph.add(self._factor(lid, f))
 
@@ -326,7 +338,15 @@ class GraphBackend(Backend):
                     return models.own_time_factor(
                         kind, X(self.k - 1), X(self.k), L(lid), s, own, self.robust
                     )
-        return models.factor(kind, X(self.k), L(lid), f, self.robust)
+        return models.factor(kind, X(self.k), L(lid), f, self.robust, C, self._cal_jacobian(f))
+
+    def _cal_jacobian(self, f: Feature) -> NDArray[np.float64] | None:
+        return None if self.cal is None else self.cal.measurement_jacobian(f.Jc)
+
+    def laser_calibration_cov(self) -> NDArray[np.float64] | None:
+        if self.cal is None or self.cal.laser is None or self._c_cov is None:
+            return None
+        return self._c_cov[self.cal.laser, self.cal.laser].copy()
 
     def merge(self, keep: int, drop: int) -> None:
         """A robust tie (sigma ``merge_sigma``) between two variables of one landmark."""
@@ -371,8 +391,10 @@ class GraphBackend(Backend):
         self._touched = set()
         p = self.isam.calculateEstimatePose2(X(self.k))
         self._pose_pred = np.array([p.x(), p.y(), p.theta()])
-        if self.calibration is not None:
+        if self.cal is not None:
             self._c = np.asarray(self.isam.calculateEstimateVector(C), dtype=float)
+            if self.cal.laser is not None:  # for association (for_association)
+                self._c_cov = self.isam.marginalCovariance(C)
         self.trajectory.append((self._pending_t, self._pose_pred.copy(), None))
 
     # ------------------------------------------------------------------ results
@@ -392,9 +414,9 @@ class GraphBackend(Backend):
     def calibration_estimate(
         self,
     ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None] | None:
-        """The wheel calibration errors: the final estimate's with its marginal covariance
-        after :meth:`finish`, before it iSAM2's current estimate alone."""
-        if self.calibration is None:
+        """The calibration errors c: the final estimate's with its marginal covariance after
+        :meth:`finish`, before it iSAM2's current estimate alone."""
+        if self.cal is None:
             return None
         if self.solution is not None:
             return self.solution.calibration()
@@ -491,8 +513,8 @@ class GraphSolution:
         return out
 
     def calibration(self) -> tuple[NDArray[np.float64], NDArray[np.float64] | None] | None:
-        """The wheel calibration errors (e_r, e_l, e_b) and their marginal covariance (None
-        if it cannot be computed), or None when the graph has no calibration variable."""
+        """The calibration errors c and their marginal covariance (None if it cannot be
+        computed), or None when the graph has no calibration variable."""
         if not self.values.exists(C):
             return None
         mean = np.asarray(self.values.atVector(C), dtype=float)
@@ -528,8 +550,8 @@ class BatchSmoother:
         t0 = time.perf_counter()
         dims = {X(k): 3 for k in range(len(source.times))}
         dims.update({L(lid): models.DIM[kind] for lid, kind in source.kinds.items()})
-        if source.calibration is not None:
-            dims[C] = 3
+        if source.cal is not None:
+            dims[C] = source.cal.dim
         try:
             values, self.iterations = levenberg_marquardt(
                 source.graph, source.final_estimate(), dims

@@ -251,18 +251,31 @@ def noise_model(cov: NDArray[np.float64], kernel: str = "none") -> gtsam.noiseMo
 
 
 def factor(
-    kind: str, pose_key: int, lm_key: int, f: Feature, robust: str = "none"
+    kind: str,
+    pose_key: int,
+    lm_key: int,
+    f: Feature,
+    robust: str = "none",
+    cal_key: int | None = None,
+    cal_jacobian: NDArray[np.float64] | None = None,
 ) -> gtsam.NonlinearFactor:
     """The GTSAM factor of a feature measured from pose ``pose_key`` of landmark ``lm_key``,
-    its noise robust with the kernel ``robust`` (:func:`m_estimator`)."""
+    its noise robust with the kernel ``robust`` (:func:`m_estimator`); with a
+    ``cal_jacobian`` (dz/dc, :class:`fgslam.slam.calibration.Calibration`) also of the
+    calibration variable ``cal_key`` (lines and corners)."""
+    if cal_jacobian is None:
+        cal_key = None
     if kind == "point":
+        if cal_key is not None:
+            raise ValueError("point measurements carry no calibration Jacobian")
         return point_factor(pose_key, lm_key, f.z, f.cov, robust=m_estimator(robust, 2))
     noise = noise_model(f.cov, robust)
+    cal = {"cal_key": cal_key, "cal_jacobian": cal_jacobian}
     if kind == "line":
-        return line_factor(pose_key, lm_key, f.z, noise)
+        return line_factor(pose_key, lm_key, f.z, noise, **cal)
     if len(f.z) == 2:
-        return corner_bearing_range_factor(pose_key, lm_key, f.z, noise)
-    return corner_factor(pose_key, lm_key, f.z, noise)
+        return corner_bearing_range_factor(pose_key, lm_key, f.z, noise, **cal)
+    return corner_factor(pose_key, lm_key, f.z, noise, **cal)
 
 
 OWN_TIME_KINDS = {"point": point_residual, "line": line_residual}  # vector landmarks

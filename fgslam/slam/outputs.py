@@ -174,7 +174,7 @@ def report_dict(res: SlamResult, true_map: dict[str, Any] | None = None) -> dict
             "attempts": res.loop_closures,
         }
     if res.calibration is not None:
-        rep["calibration"] = {"parameters": ["e_r", "e_l", "e_b"], **res.calibration}
+        rep["calibration"] = dict(res.calibration)
     if res.stats.get("partial"):
         rep["partial"] = dict(res.stats["partial"])
     if res.has_truth and len(res.times):

@@ -39,6 +39,7 @@ from fgslam.ordering import REORDER_WINDOW, ReorderBuffer
 from fgslam.slam import models
 from fgslam.slam.association import METHODS
 from fgslam.slam.backend import Backend
+from fgslam.slam.calibration import Calibration
 from fgslam.slam.ekf import EkfBackend
 from fgslam.slam.graph import BackendError, BatchSmoother, GraphBackend
 from fgslam.slam.keyframes import KeyframeParams, ScanOdometry
@@ -54,12 +55,12 @@ SENSORS = ("fused", "laser", "sonar")
 def make_backend(
     name: str,
     motion_gate_p: float = 0.999,
-    calibration: NDArray[np.float64] | None = None,
+    calibration: Calibration | NDArray[np.float64] | None = None,
     sonar_timing: str = "scan-frame",
 ) -> Backend:
     """A backend by name; ``motion_gate_p``: the EKF's gate between wheel odometry and a scan
-    match of one link (:meth:`EkfBackend.predict`); ``calibration``: the prior covariance of
-    the wheel calibration errors to estimate (None: off; ``OdometryConfig.calibration``);
+    match of one link (:meth:`EkfBackend.predict`); ``calibration``: the calibration errors
+    to estimate (:meth:`Calibration.from_config`; None: off);
     ``sonar_timing``: the graph's (``SonarConfig.timing``; the EKF has only the scan frame)."""
     if name == "ekf":
         return EkfBackend(motion_gate_p=motion_gate_p, calibration=calibration)
@@ -97,8 +98,8 @@ class SlamResult:
     scan_times: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
     scan_poses: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 3)))
     loop_closures: list[dict] = field(default_factory=list)  # every attempt (loops.Closure)
-    # the wheel calibration errors estimated: {"estimate": [e_r, e_l, e_b], "sigma": [...] or
-    # None}; None when not estimated
+    # the calibration errors estimated: {"parameters": names (Calibration), "estimate": [...],
+    # "sigma": [...] or None}; None when not estimated
     calibration: dict | None = None
 
     @property
@@ -123,7 +124,7 @@ class _Session(SlamStep):
         map_params: MapParams | None,
         loops: LoopCloser | None = None,
         motion_gate_p: float = 0.999,
-        calibration: NDArray[np.float64] | None = None,
+        calibration: Calibration | None = None,
         sonar_timing: str = "scan-frame",
     ) -> None:
         be = make_backend(backend, motion_gate_p, calibration, sonar_timing)
@@ -231,7 +232,7 @@ class SlamPipeline:
         origin = (cfg.laser.mount.x, cfg.laser.mount.y)
         self.scan_odometry = ScanOdometry(kp, mp, origin, cfg.laser.sigma_time)
         self._between: list[tuple[float, int, NDArray[np.float64]]] = []  # non-keyframes
-        cal = cfg.odometry.calibration_prior()
+        cal = Calibration.from_config(cfg)
         for b in backends:
             if b == "ekf":
                 self.sessions[b] = _Session("ekf", map_params, None, kp.motion_gate_p, cal)
@@ -571,6 +572,7 @@ def _result(
         calibration=None
         if cal is None
         else {
+            "parameters": list(sess.be.cal.names),
             "estimate": cal[0].tolist(),
             "sigma": None if cal[1] is None else np.sqrt(np.diag(cal[1])).tolist(),
         },

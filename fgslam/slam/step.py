@@ -163,7 +163,9 @@ class SlamStep:
     def _keyframe_own(self, t: float, features, pose) -> list[int | None]:
         be, lc, p = self.be, self.map, self.p
         means = be.means()
-        a = associate(features, pose, lc.candidates(pose, means), means, be.estimate, self.assoc)
+        # the features as association and the tentative map weigh them (Backend.for_association)
+        weighed = [be.for_association(f) for f in features]
+        a = associate(weighed, pose, lc.candidates(pose, means), means, be.estimate, self.assoc)
         self.stats.update(a.stats)
         self._compatible = a.compatible
         # line merges decided by a measurement covering two map lines (paper IV)
@@ -195,7 +197,7 @@ class SlamStep:
                 continue  # a sonar-only corner cannot start a corner landmark
             if Pxx is None:
                 Pxx = self._pose_cov()
-            lid, confirmed = lc.sight_tentative(t, self.k, f, pose, Pxx)
+            lid, confirmed = lc.sight_tentative(t, self.k, weighed[i], pose, Pxx)
             where[i] = lid
             if confirmed:
                 lc.confirm(lid)
