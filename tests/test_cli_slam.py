@@ -114,6 +114,23 @@ def test_run_calibration_option(short_log, tmp_path, capsys):
     assert "invalid choice" in capsys.readouterr().err
 
 
+def test_run_laser_calibration_option(short_log, tmp_path):
+    """--laser-calibration offset: report.json holds the wheels' errors and the laser's
+    range offset, its sigma learned from 25 s of data (below the 1 cm prior) and the
+    simulator's 8 mm within 3 sigma of it (range: also the scale)."""
+    args = ["run", str(short_log), "--backend", "isam2", "--sensors", "laser"]
+    for mode, names in (
+        ("offset", ["e_r", "e_l", "e_b", "laser_offset"]),
+        ("range", ["e_r", "e_l", "e_b", "laser_offset", "laser_scale"]),
+    ):
+        out = tmp_path / mode
+        assert main([*args, "--laser-calibration", mode, "--out", str(out)]) == 0
+        cal = json.loads((out / "report.json").read_text())["calibration"]
+        assert cal["parameters"] == names
+        est, sig = cal["estimate"][3], cal["sigma"][3]
+        assert sig < 0.005 and abs(est - 0.008) < 3 * sig, (est, sig)
+
+
 def test_run_sonar_timing_option(short_log, tmp_path):
     """--sonar-timing own-time: the graph attaches sonar features at their own time
     (report.json statistics count them); the default (scan-frame) attaches none."""

@@ -269,3 +269,25 @@ def test_random_covariance_plus_calibration_covers_a_random_range_bias_monte_car
     S = np.cov(np.array(errs).T)
     np.testing.assert_allclose(np.sqrt(np.diag(S)), np.sqrt(np.diag(C)), rtol=0.12)
     assert 2.6 < np.mean(nees) < 3.4
+
+
+def test_line_end_trimming_drops_the_next_walls_grazing_beam():
+    """A wall seen at grazing angles up to a concave corner, and one beam of the next wall
+    6.9 cm off the line (inside the segmentation's perpendicular bound, its range 44 cm
+    short): with ``trim_ends`` that end beam is left out and the line is unbiased; without,
+    the range fit is pulled by it. Noise-only ends are kept."""
+    rng = np.random.default_rng(4)
+    p = np.radians(np.arange(-80.0, -9.4, 0.5))  # the wall y = -1.2 ahead of the sensor
+    r = line_ranges(-math.pi / 2, 1.2, p) + rng.normal(0, 0.005, p.size)
+    x_corner = 1.2 / math.tan(math.radians(9.5))
+    phi_b = math.radians(-9.0)  # the next beam hits the wall x = x_corner, 6.9 cm up
+    r_b = x_corner / math.cos(phi_b)
+    pb, rb = np.append(p, phi_b), np.append(r, r_b)
+    plain = fit_line(pb, rb, 0.02)
+    trimmed = fit_line(pb, rb, 0.02, trim_ends=4.0)
+    assert abs(plain.params[1] - 1.2) > 0.005  # pulled 7 mm by the one grazing beam
+    assert abs(trimmed.params[1] - 1.2) < 0.002
+    assert not trimmed.used[-1] and trimmed.used[:-1].all()
+    clean = fit_line(p, r, 0.02, trim_ends=4.0)
+    assert clean.used.all()
+    np.testing.assert_allclose(clean.params, fit_line(p, r, 0.02).params)

@@ -141,19 +141,42 @@ def fit_line(
     max_iter: int = 10,
     residual_test: float | None = None,
     sources: Sequence[ArrayLike] = (),
+    trim_ends: float | None = None,
 ) -> Fit:
     """Fit (alpha, d) to laser points by minimising squared range residuals.
 
     ``systematic``: per-source systematic range errors (m), each a scalar or one per beam.
     ``sources``: unit range-error sources (m per unit, e.g. 1 for an offset and r for a
     scale), each a scalar or one per beam, whose Jacobians the fit returns
-    (:attr:`Fit.source_jacobian`).
+    (:attr:`Fit.source_jacobian`). ``trim_ends``: beams at either end of the segment whose
+    perpendicular distance to the fitted line exceeds this many times the line's robust
+    spread (1.4826 MAD, at least 1 mm) are left out and the line refitted once (the
+    segmentation bounds the perpendicular distance, so a line may end with a grazing beam of
+    the next wall, its range tens of cm off: ``Fit.used`` marks the beams kept).
     ``residual_test``: a chi-square level (e.g. :data:`RESIDUAL_TEST`), see
     :func:`residual_scale` (a wall that is not planar, or noisier than ``sigma_r``, gets the
     covariance of its own residual); None (default): the range model alone.
     Raises :class:`FitRejected` (too few points, a line through the sensor, no convergence).
     """
     phi, r, ok = _prepare(phi, r, 3)
+    fit = _fit_line_once(phi, r, ok, sigma_r, systematic, max_iter, residual_test, sources)
+    if trim_ends is None:
+        return fit
+    a, d = fit.params
+    idx = np.flatnonzero(ok)
+    e = r[idx] * np.cos(a - phi[idx]) - d  # perpendicular residuals, m
+    spread = 1.4826 * float(np.median(np.abs(e - np.median(e))))
+    inside = np.flatnonzero(np.abs(e) <= trim_ends * max(spread, 1e-3))
+    if inside.size < 3 or (inside[0] == 0 and inside[-1] == idx.size - 1):
+        return fit
+    ok = ok.copy()
+    ok[idx[: inside[0]]] = False
+    ok[idx[inside[-1] + 1 :]] = False
+    return _fit_line_once(phi, r, ok, sigma_r, systematic, max_iter, residual_test, sources)
+
+
+def _fit_line_once(phi, r, ok, sigma_r, systematic, max_iter, residual_test, sources) -> Fit:
+    """:func:`fit_line` on the beams ``ok``."""
     p, rr = phi[ok], r[ok]
     alpha, d = tls_line(rr * np.cos(p), rr * np.sin(p))
     if d < 1e-3:

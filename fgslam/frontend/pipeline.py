@@ -78,6 +78,7 @@ class FrontEndParams:
     # "offset", "range"): their worst-case terms leave the covariances (the features always
     # carry the Jacobians of both, Feature.Jc)
     range_calibration: str = "off"
+    line_end_trim: float = 0.0  # FrontendConfig.line_end_trim (0: off)
 
 
 def frontend_params(cfg: RobotConfig, base: FrontEndParams | None = None) -> FrontEndParams:
@@ -102,6 +103,7 @@ def frontend_params(cfg: RobotConfig, base: FrontEndParams | None = None) -> Fro
         corners=cfg.frontend.corners,
         points_from=cfg.frontend.points_from,
         range_calibration=cfg.laser.calibration,
+        line_end_trim=cfg.frontend.line_end_trim,
     )
 
 
@@ -321,15 +323,18 @@ class FrontEnd:
                 self._systematic(rr),
                 residual_test=self.p.residual_level,
                 sources=self._sources(rr),
+                trim_ends=self.p.line_end_trim or None,
             )
         except FitRejected as exc:
             stats[f"lines_rejected_{exc.reason}"] += 1
             return None
         if fit.scale > 1:  # the residual exceeds the range model: covariance scaled
             stats["lines_residual_scaled"] += 1
+        stats["line_end_beams_trimmed"] += int(np.isfinite(rr).sum() - fit.used.sum())
         a, d = fit.params
+        kept = np.flatnonzero(fit.used)
         ends = []
-        for k in (0, -1):  # first and last point projected on the line
+        for k in (kept[0], kept[-1]):  # first and last point kept, projected on the line
             x, y = rr[k] * math.cos(p[k]), rr[k] * math.sin(p[k])
             off = x * math.cos(a) + y * math.sin(a) - d
             ends.append((x - off * math.cos(a), y - off * math.sin(a)))
