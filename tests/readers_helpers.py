@@ -89,6 +89,14 @@ def carmen_text(
     return "\n".join(lines) + "\n"
 
 
+def bag_drive(k: int) -> tuple[float, float, float]:
+    """The pose (x m, y m, theta rad) of odometry message k (from 0) of :func:`write_bag`,
+    at 1 + 0.1 k s: 5 cm chords turning 0.02 rad each."""
+    x = sum(0.05 * math.cos(0.02 * j + 0.01) for j in range(k))
+    y = sum(0.05 * math.sin(0.02 * j + 0.01) for j in range(k))
+    return x, y, 0.02 * k
+
+
 def write_bag(
     path,
     ros1: bool,
@@ -99,13 +107,15 @@ def write_bag(
     jump: int | None = None,
     header=None,
     record=None,
+    frozen: range = range(0),
 ) -> None:
     """A bag with /scan (181 beams over 180 deg), /odom (two messages per scan, the robot
-    advancing 5 cm and turning 0.02 rad per message) and /sonar (sensor_msgs/Range, one
-    out-of-range reading). ``zero_stamps``: every header stamp 0 (the record times stay);
-    ``jump``: odometry message ``jump`` 1e6 m off; ``header(topic, k, t)`` /
-    ``record(topic, k, t)``: the header stamp / record time of the k-th message (from 0)
-    of a topic instead of ``t``."""
+    advancing 5 cm and turning 0.02 rad per message, :func:`bag_drive`) and /sonar
+    (sensor_msgs/Range, one out-of-range reading). ``zero_stamps``: every header stamp 0
+    (the record times stay); ``jump``: odometry message ``jump`` 1e6 m off; ``frozen``: the
+    odometry messages in it repeat the pose of message ``frozen.start - 1`` (the stream froze
+    while the robot drove on); ``header(topic, k, t)`` / ``record(topic, k, t)``: the header
+    stamp / record time of the k-th message (from 0) of a topic instead of ``t``."""
     from rosbags.typesys import Stores, get_typestore
 
     ts = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
@@ -151,11 +161,7 @@ def write_bag(
             cr = writer.add_connection("/sonar", "sensor_msgs/msg/Range", typestore=ts)
         for k in range(2 * n):
             t = 1.0 + 0.1 * k
-            th = 0.02 * k
-            x, y = 0.0, 0.0
-            for j in range(k):  # the path of 5 cm chords turning 0.02 rad each
-                x += 0.05 * math.cos(0.02 * j + 0.01)
-                y += 0.05 * math.sin(0.02 * j + 0.01)
+            x, y, th = bag_drive(frozen.start - 1 if k in frozen else k)
             q = g["Quaternion"](x=0.0, y=0.0, z=math.sin(th / 2), w=math.cos(th / 2))
             if jump is not None and k == jump:
                 x += 1e6  # a corrupt odometry message

@@ -33,17 +33,11 @@ the next sample); an ODOM line stamped before the last delivered event, or (corr
 after the scan that follows it, is counted and its motion carried into the next sample:
 events are never reordered and their stamps never go backwards.
 
-**Stale odometry** (raw logs). Odometry that freezes and catches up (MIT CSAIL: the pose
-field repeats for 0.6-1.1 s while the robot turns, then jumps by up to 85 deg in one record)
-would say "no motion" with full confidence and then put the whole motion into one scan
-interval. So a record that repeats the last pose, and the scans after it, are held while the
-last change lies at most ``stale`` s back (:class:`~fgslam.readers.sanity.OdometryLimits`):
-when the odometry moves again, its increment is spread evenly over the span since the last
-change and the held scans are delivered among its samples (``stale_spans``,
-``stale_seconds`` in the odometry notes); when it repeats for longer, the robot stood still
-(or it is a hole): the held events are delivered as they were. A robot that stops and
-starts again within ``stale`` s is thus seen creeping over the stop; its first increment is
-small.
+**Stale odometry** (raw logs; MIT CSAIL's FLASER odometry fields freeze for 0.6-1.1 s while
+the robot turns): an ``ODOM`` line that repeats the last pose, or a scan whose odometry field
+does (logs without ``ODOM`` lines; such a scan gives no zero sample), and the events after it
+are held and spread by :class:`~fgslam.readers.common.StaleOdometryHold` (``stale_spans``,
+``stale_seconds`` in the odometry notes).
 """
 
 from __future__ import annotations
@@ -54,13 +48,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from fgslam.events import Event, LaserScan, OdometryEvent, TruthPose
+from fgslam.events import Event, LaserScan, TruthPose
 
 if TYPE_CHECKING:
     from fgslam.dense import OdometryChain
 from fgslam.readers.common import (
     ReaderError,
     Source,
+    StaleOdometryHold,
     StrPath,
     VirtualDrive,
     compose,
@@ -292,12 +287,7 @@ class CarmenLog(Source):
             "rebased": 0,
             "stale_spans": 0,
             "stale_seconds": 0.0,
-            "limits": {
-                "max_speed_m_s": self.limits.max_speed,
-                "max_turn_rate_rad_s": self.limits.max_turn_rate,
-                "hole_s": self.limits.hole,
-                "stale_s": self.limits.stale,
-            },
+            "limits": self.limits.notes(),
         }
         self.problems.notes["odometry"] = self._odo_notes
 
@@ -395,50 +385,8 @@ class CarmenLog(Source):
         carried = np.zeros(3)  # motion not yet delivered (an increment)
         have_odom = False
         n_scans = 0
-        # raw logs: events held while the odometry repeats its last pose (module doc, "stale
-        # odometry"); `held_t` the stamp of the last repeat held, `last_out` of the last event
-        # delivered
-        held: list[Event] = []
-        held_t: float | None = None
-        last_out = -math.inf
-
-        def holding(now: float) -> bool:
-            """Whether an odometry repeat (or a scan after one) at ``now`` is held: the last
-            change lies at most ``stale`` s back."""
-            return self.mode == "raw" and drive.t is not None and now - drive.t <= limits.stale
-
-        def motion(now: float, inc: np.ndarray) -> Iterator[Event]:
-            """The samples of ``inc`` ending at ``now`` (spread back over the held span) and
-            the held events, in time order."""
-            nonlocal held, held_t, last_out
-            start = drive.t
-            hole = limits.stale if held else limits.hole  # a held span is spread, not a hole
-            ticks = drive.ticks(now, inc, after=last_out, hole=hole)
-            if held and start is not None and np.any(inc != 0):
-                notes["stale_spans"] += 1
-                notes["stale_seconds"] = round(notes["stale_seconds"] + now - start, 3)
-            out = sorted([*ticks, *held], key=lambda e: (e.t, not isinstance(e, OdometryEvent)))
-            held, held_t = [], None
-            if out:
-                last_out = max(last_out, out[-1].t)
-            yield from out
-
-        def release() -> Iterator[Event]:
-            """The held events as they are (the odometry repeated for longer than ``hole``:
-            the robot stood still, or a hole)."""
-            nonlocal held, held_t, last_out
-            out, held, held_t = held, [], None
-            if out:
-                last_out = max(last_out, out[-1].t)
-            yield from out
-
-        def deliver(ev: Event) -> Iterator[Event]:
-            nonlocal last_out
-            if held:
-                held.append(ev)
-                return
-            last_out = max(last_out, ev.t)
-            yield ev
+        # raw logs: events held while the odometry repeats its last pose (stale odometry)
+        hold = StaleOdometryHold(drive, limits, notes)
 
         for lineno, rec in self._records():
             tag = rec["tag"]
@@ -483,21 +431,14 @@ class CarmenLog(Source):
                     pr.backwards["ODOM"] += 1
                     continue
                 last_odo_t, in_hole = t, end_hole(t)
-                if not np.any(carried != 0):  # a repeat of the last pose
-                    if holding(t):
-                        held_t = t
-                        continue
-                    if held_t is not None:  # stood still: its zero sample, then the held
-                        yield from motion(held_t, carried)
-                    yield from release()
-                yield from motion(t, carried)
+                yield from hold.odometry(t, carried)
                 carried = np.zeros(3)
                 continue
             if tag == "TRUEPOS":
                 if self.reference and self.mode == "raw":
                     self.reference_kind = "ground truth"
                     if t >= last_odo_t:
-                        yield from deliver(TruthPose(t, *rec["pose"]))
+                        yield from hold.event(TruthPose(t, *rec["pose"]), needs_odometry=False)
                     else:
                         pr.backwards["TRUEPOS"] += 1
                 continue
@@ -540,25 +481,14 @@ class CarmenLog(Source):
             if backwards:
                 pr.backwards[tag] += 1
                 continue  # the scan is dropped; its motion stays in `carried`
-            hold = False
             if self.mode == "corrected" and np.any(carried != 0):
                 yield from drive.ticks(t, carried, after=last_scan_t, hole=limits.hole)
                 carried = np.zeros(3)
                 last_odo_t, in_hole = t, end_hole(t)
-            elif not have_odom and np.any(carried != 0):
-                yield from motion(t, carried)
+            elif not have_odom and self.mode == "raw":  # the scan's odometry field
+                yield from hold.odometry(t, carried, sample=False)
                 carried = np.zeros(3)
                 last_odo_t, in_hole = t, end_hole(t)
-            elif not have_odom and self.mode == "raw":  # the scan's odometry: a repeat
-                last_odo_t, in_hole = t, end_hole(t)
-                hold = holding(t)
-                held_t = t if hold else held_t
-                if not hold:
-                    yield from release()
-            elif held_t is not None:  # raw ODOM lines: a scan after a repeat
-                hold = holding(t)
-                if not hold:  # stood still: the repeat's zero sample, then the held
-                    yield from motion(held_t, np.zeros(3))
             if last_odo_t > -math.inf and t - last_odo_t > limits.hole:
                 if not in_hole:  # a hole: no odometry for too long while scans come
                     notes["holes"] += 1
@@ -571,11 +501,8 @@ class CarmenLog(Source):
             ranges = ranges.copy()
             ranges[(ranges >= self.no_return) | (ranges <= 0)] = np.nan
             n_scans += 1
-            if hold:
-                held.append(LaserScan(t, ranges))
-            else:
-                yield from deliver(LaserScan(t, ranges))
-        yield from release()
+            yield from hold.event(LaserScan(t, ranges))
+        yield from hold.flush()
         self.problems.notes["warnings"] = input_warnings(n_scans, drive.travel, notes)
 
     def _implausible(self, lineno: int, inc: np.ndarray, dt: float) -> bool:

@@ -1,6 +1,7 @@
 """What every foreign-log reader shares: the error type, the bookkeeping of skipped records and
-backward timestamps, the robot configuration derived from the data, and the virtual
-differential drive that turns pose increments into encoder ticks.
+backward timestamps, the robot configuration derived from the data, the virtual
+differential drive that turns pose increments into encoder ticks, and the hold of stale
+odometry (:class:`StaleOdometryHold`).
 
 Readers yield the project's own events (:mod:`fgslam.events`), so everything downstream (front
 end, runner, backends, ``fgslam convert``) works on them unchanged. Units SI, REP-103 frames.
@@ -27,6 +28,7 @@ from fgslam.frontend.fits import RESIDUAL_TEST
 from fgslam.readers.sanity import OdometryLimits
 
 StrPath = str | PathLike[str]
+Increment = tuple[float, float, float] | np.ndarray  # (dx m, dy m, dtheta rad)
 MAX_PROBLEMS = 20
 
 # The virtual differential drive of logs that give odometry as poses (CARMEN, ROS):
@@ -290,6 +292,110 @@ class VirtualDrive:
             )
             for i in range(n)
         ]
+
+
+class StaleOdometryHold:
+    """Stale odometry: a pose stream that freezes and then catches up, spread over its span.
+
+    Odometry given as poses sometimes repeats its last pose while the robot moves and then
+    jumps (MIT CSAIL's FLASER fields repeat for 0.6-1.1 s while the robot turns, then jump by
+    up to 85 deg in one record). Read as it is, that is "no motion" with full confidence and
+    then the whole motion in one scan interval. So an odometry record that repeats the last
+    pose (a zero increment) is held while the last change lies at most ``stale`` s back
+    (:class:`~fgslam.readers.sanity.OdometryLimits`), and so are the events after it (scans,
+    sonar readings):
+
+    - when the odometry moves again, its increment is spread evenly over the span since the
+      last change (samples of the :class:`VirtualDrive`) and the held events are delivered
+      among its samples, in time order; counted in ``notes`` as ``stale_spans`` and
+      ``stale_seconds`` (s, the span from the last change to the catch-up);
+    - when it repeats for longer than ``stale`` s, the robot stood still (or it is a hole):
+      the repeat's zero sample and the held events are delivered as they were.
+
+    A robot that stops and starts again within ``stale`` s is thus seen creeping over the
+    stop; its first increment is small. Events leave in the order of their stamps, which never
+    go below the last one delivered. Feed every odometry record to :meth:`odometry`, every
+    other event to :meth:`event`, and call :meth:`flush` at the end of the log.
+    """
+
+    def __init__(self, drive: VirtualDrive, limits: OdometryLimits, notes: dict[str, Any]) -> None:
+        self.drive = drive
+        self.stale = limits.stale  # s
+        self.hole = limits.hole  # s
+        self.notes = notes
+        notes.setdefault("stale_spans", 0)
+        notes.setdefault("stale_seconds", 0.0)
+        self.held: list[Event] = []
+        self.repeat_t: float | None = None  # s, stamp of the last repeat held
+        self.last_out = -math.inf  # s, stamp of the last event delivered
+
+    def holding(self, t: float) -> bool:
+        """Whether a repeat (or an event after one) at ``t`` s is held: the last change of the
+        odometry lies at most ``stale`` s back."""
+        return self.drive.t is not None and t - self.drive.t <= self.stale
+
+    def odometry(self, t: float, inc: Increment, *, sample: bool = True) -> list[Event]:
+        """The events an odometry record at ``t`` s with increment ``inc`` (dx m, dy m, dtheta
+        rad, over the last record) releases. ``sample`` False: the record is no odometry
+        record of its own (a scan's odometry field): a repeat that is a stop gives no zero
+        samples, only the held events."""
+        if np.any(np.asarray(inc) != 0):
+            return self._motion(t, inc)
+        if self.holding(t):
+            self.repeat_t = t
+            return []
+        if not sample:
+            return self._release()
+        return self._stood_still() + self._motion(t, inc)
+
+    def event(self, ev: Event, *, needs_odometry: bool = True) -> list[Event]:
+        """The events a non-odometry event releases: none while it is held (a repeat lies
+        before it within ``stale`` s of the last change), else the event itself (after the
+        held ones when the repeat turned out to be a stop). ``needs_odometry`` False: an
+        event placed without the odometry (a ground-truth pose) waits only behind held
+        events, to keep the time order, and never ends a hold."""
+        out: list[Event] = []
+        if not needs_odometry:
+            if self.held:
+                self.held.append(ev)
+                return []
+        elif self.repeat_t is not None:
+            if self.holding(ev.t):
+                self.held.append(ev)
+                return []
+            out = self._stood_still()
+        self.last_out = max(self.last_out, ev.t)
+        return [*out, ev]
+
+    def flush(self) -> list[Event]:
+        """The events still held at the end of the log, as they were."""
+        return self._release()
+
+    def _stood_still(self) -> list[Event]:
+        """The pending repeat was a stop: its zero sample, then the held events."""
+        out = self._motion(self.repeat_t, np.zeros(3)) if self.repeat_t is not None else []
+        return out + self._release()
+
+    def _motion(self, t: float, inc: Increment) -> list[Event]:
+        """The samples of ``inc`` ending at ``t`` s (spread back over the held span) and the
+        held events, in time order (a sample before an event of the same stamp)."""
+        start = self.drive.t
+        hole = self.stale if self.held else self.hole  # a held span is spread, not a hole
+        ticks = self.drive.ticks(t, inc, after=self.last_out, hole=hole)
+        if self.held and start is not None and np.any(np.asarray(inc) != 0):
+            self.notes["stale_spans"] += 1
+            self.notes["stale_seconds"] = round(self.notes["stale_seconds"] + t - start, 3)
+        out = sorted([*ticks, *self.held], key=lambda e: (e.t, not isinstance(e, OdometryEvent)))
+        self.held, self.repeat_t = [], None
+        if out:
+            self.last_out = max(self.last_out, out[-1].t)
+        return out
+
+    def _release(self) -> list[Event]:
+        out, self.held, self.repeat_t = self.held, [], None
+        if out:
+            self.last_out = max(self.last_out, out[-1].t)
+        return out
 
 
 MIN_SCANS = 10  # fewer scans than this: "almost nothing to process"

@@ -23,7 +23,10 @@ before reading, both clocks are checked per topic with the rules of
 :class:`ReaderError` names each clock's first defect and its topic. Messages with sporadic
 bad stamps are handled as going backwards (below). Odometry messages moving faster than the reader's
 :class:`~fgslam.readers.sanity.OdometryLimits` are an error (strict) or skipped and counted
-(tolerant); gaps in the odometry while scans come are counted as holes. Topic names are
+(tolerant); gaps in the odometry while scans come are counted as holes. Odometry that
+repeats its pose (a frozen stream) and the scans and range readings after it are held and
+spread by :class:`~fgslam.readers.common.StaleOdometryHold` (``stale_spans``,
+``stale_seconds`` in the odometry notes), as in raw CARMEN logs. Topic names are
 chosen by option; left out, the only topic of the right type is taken. A bag without such a
 topic is a :class:`ReaderError` listing the topics it has. Header stamps that go backwards
 are counted: a scan or range reading is then skipped, an odometry message's motion is carried
@@ -45,6 +48,7 @@ from fgslam.events import Event, LaserScan, SonarEcho, SonarReading
 from fgslam.readers.common import (
     ReaderError,
     Source,
+    StaleOdometryHold,
     StrPath,
     VirtualDrive,
     compose,
@@ -178,7 +182,13 @@ class RosBag(Source):
             "timestamps": clock_record,
         }
         self.problems.notes["timestamps"] = clock_record
-        self._odo_notes = {"holes": 0, "implausible": 0}
+        self._odo_notes: dict[str, Any] = {
+            "holes": 0,
+            "implausible": 0,
+            "stale_spans": 0,
+            "stale_seconds": 0.0,
+            "limits": self.limits.notes(),
+        }
         self.problems.notes["odometry"] = self._odo_notes
 
     def _clock_pass(self, reader: Any) -> Any:
@@ -266,10 +276,11 @@ class RosBag(Source):
 
     def __iter__(self) -> Iterator[Event]:
         drive = VirtualDrive(self.config)
+        hold = StaleOdometryHold(drive, self.limits, self._odo_notes)
         pr = self.problems
         last = -math.inf
         last_odom_pose: tuple[float, float, float] | None = None
-        last_odom_t = last_delivered_odo = -math.inf
+        last_odom_t = last_odo_in = -math.inf  # s: last odometry read, last one used
         in_hole = False
         n_scans = 0
         carried = np.zeros(3)
@@ -328,16 +339,16 @@ class RosBag(Source):
                         pr.backwards[conn.topic] += 1
                         continue
                     last = t
-                    yield from drive.ticks(t, carried, after=last, hole=self.limits.hole)
+                    yield from hold.odometry(t, carried)
                     carried = np.zeros(3)
-                    last_delivered_odo, in_hole = t, False
+                    last_odo_in, in_hole = t, False
                     continue
                 if bad or t < last:
                     pr.backwards[conn.topic] += 1
                     continue
                 last = t
-                if conn.topic == self.scan_topic and t - last_delivered_odo > self.limits.hole:
-                    if not in_hole and last_delivered_odo > -math.inf:
+                if conn.topic == self.scan_topic and t - last_odo_in > self.limits.hole:
+                    if not in_hole and last_odo_in > -math.inf:
                         self._odo_notes["holes"] += 1
                         in_hole = True
                 if conn.topic == self.scan_topic:
@@ -349,11 +360,12 @@ class RosBag(Source):
                     bad = ~np.isfinite(r) | (r < msg.range_min) | (r > msg.range_max) | (r <= 0)
                     r[bad] = np.nan
                     n_scans += 1
-                    yield LaserScan(t, r)
+                    yield from hold.event(LaserScan(t, r))
                 else:
                     r = float(msg.range)
                     echoes = ()
                     if math.isfinite(r) and msg.min_range <= r <= msg.max_range and r > 0:
                         echoes = (SonarEcho("plane", r, 0.0),)
-                    yield SonarReading(t, array_of[conn.topic], 0.0, echoes)
+                    yield from hold.event(SonarReading(t, array_of[conn.topic], 0.0, echoes))
+        yield from hold.flush()
         self.problems.notes["warnings"] = input_warnings(n_scans, drive.travel, self._odo_notes)

@@ -55,12 +55,21 @@ class OdometryLimits:
     """Plausible odometry: at most ``max_speed`` m/s and ``max_turn_rate`` rad/s between two
     records (with :data:`MIN_DT` s of slack); a gap longer than ``hole`` s with scans in it is
     an odometry hole; odometry that repeats its last pose is held as possibly stale for up to
-    ``stale`` s (:mod:`fgslam.readers.carmen`, "stale odometry")."""
+    ``stale`` s (:class:`fgslam.readers.common.StaleOdometryHold`)."""
 
     max_speed: float = 3.0
     max_turn_rate: float = 6.0
     hole: float = 1.0
     stale: float = 2.0  # s; MIT CSAIL's freezes last up to 1.07 s
+
+    def notes(self) -> dict[str, float]:
+        """The bounds as the readers report them (``summary()["odometry"]["limits"]``)."""
+        return {
+            "max_speed_m_s": self.max_speed,
+            "max_turn_rate_rad_s": self.max_turn_rate,
+            "hole_s": self.hole,
+            "stale_s": self.stale,
+        }
 
 
 def implausible(inc: Any, dt: float, limits: OdometryLimits) -> str | None:

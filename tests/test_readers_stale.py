@@ -1,0 +1,209 @@
+"""Stale odometry (fgslam.readers.common.StaleOdometryHold): the hold on its own, in ROS bags,
+and the same events and notes from a raw CARMEN log and a bag of the same drive (the CARMEN
+cases on the room log are in test_readers_sanity.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from readers_helpers import bag_drive, fmt, write_bag
+
+from fgslam.events import LaserScan, OdometryEvent, SonarReading, TruthPose
+from fgslam.readers import open_log
+from fgslam.readers.common import StaleOdometryHold, VirtualDrive, derived_config
+from fgslam.readers.sanity import OdometryLimits
+
+CFG = derived_config(5)
+MOVE = (0.15, 0.0, 0.0)  # m, m, rad: three samples of 5 cm
+
+
+def _hold(stale: float = 1.0) -> tuple[StaleOdometryHold, dict]:
+    notes: dict = {}
+    return StaleOdometryHold(VirtualDrive(CFG), OdometryLimits(stale=stale), notes), notes
+
+
+def _scan(t: float) -> LaserScan:
+    return LaserScan(t, np.full(5, 2.0))
+
+
+def _kinds(events) -> list[tuple[str, float]]:
+    return [(type(e).__name__[0], round(e.t, 6)) for e in events]
+
+
+def test_a_short_freeze_is_held_and_spread():
+    """Repeats at 1.1 and 1.2 s (the last change at 1.0 s, within ``stale``): the repeats and
+    the scans after them are held; the catch-up at 1.3 s is spread over the span after the
+    last delivered event (1.05 s) with the held scans among its samples; one span of 0.3 s."""
+    hold, notes = _hold()
+    assert notes == {"stale_spans": 0, "stale_seconds": 0.0}
+    assert _kinds(hold.odometry(1.0, (0.05, 0.0, 0.0))) == [("O", 1.0)]
+    assert _kinds(hold.event(_scan(1.05))) == [("L", 1.05)]
+    for t in (1.1, 1.2):
+        assert hold.odometry(t, np.zeros(3)) == []
+        assert hold.event(_scan(t + 0.05)) == []
+    out = hold.odometry(1.3, MOVE)
+    assert _kinds(out) == [("O", 1.133333), ("L", 1.15), ("O", 1.216667), ("L", 1.25), ("O", 1.3)]
+    odo = [e for e in out if isinstance(e, OdometryEvent)]
+    assert [(e.ticks_right, e.ticks_left) for e in odo] == [(500, 500)] * 3  # 0.1 mm/tick
+    assert notes == {"stale_spans": 1, "stale_seconds": pytest.approx(0.3)}
+    assert hold.held == [] and hold.repeat_t is None
+
+
+def test_a_freeze_longer_than_stale_is_a_stop():
+    """Repeats from 1.4 s after the last change at 1.0 s: held while within ``stale`` (1 s);
+    the repeat at 2.6 s shows a stop: the pending repeat's zero sample and the held scans come
+    out as they were, then the repeat's own zero sample; no span is counted. Events held at
+    the end of the log are flushed as they were."""
+    hold, notes = _hold(stale=1.0)
+    hold.odometry(1.0, MOVE)
+    assert hold.odometry(1.4, np.zeros(3)) == [] and hold.event(_scan(1.45)) == []
+    assert hold.odometry(1.8, np.zeros(3)) == [] and hold.event(_scan(1.85)) == []
+    out = hold.odometry(2.6, np.zeros(3))
+    assert _kinds(out) == [("L", 1.45), ("O", 1.8), ("L", 1.85), ("O", 2.6)]
+    assert all(e.ticks_right == e.ticks_left == 0 for e in out if isinstance(e, OdometryEvent))
+    assert notes["stale_spans"] == 0
+    # the stop goes on: held again (the last sample is recent), flushed at the end
+    assert hold.odometry(3.0, np.zeros(3)) == [] and hold.event(_scan(3.05)) == []
+    assert _kinds(hold.flush()) == [("L", 3.05)]
+    assert notes == {"stale_spans": 0, "stale_seconds": 0.0}
+
+
+def test_an_event_ends_a_hold_and_scan_fields_give_no_zero_samples():
+    """A scan beyond ``stale`` after a repeat shows the stop itself (the repeat's zero sample,
+    the held, then the scan). A repeat in a scan's odometry field (``sample=False``) that is a
+    stop releases the held events without zero samples. An event placed without the
+    odometry (a truth pose) waits behind held events but does not start a hold."""
+    hold, notes = _hold(stale=1.0)
+    hold.odometry(1.0, MOVE)
+    assert hold.odometry(1.5, np.zeros(3)) == [] and hold.event(_scan(1.55)) == []
+    assert _kinds(hold.event(_scan(2.2))) == [("O", 1.5), ("L", 1.55), ("L", 2.2)]
+
+    hold, notes = _hold(stale=1.0)
+    hold.odometry(1.0, MOVE, sample=False)
+    assert hold.odometry(1.5, np.zeros(3), sample=False) == [] and hold.event(_scan(1.5)) == []
+    assert _kinds(hold.odometry(2.2, np.zeros(3), sample=False)) == [("L", 1.5)]
+    assert _kinds(hold.event(_scan(2.2))) == [("L", 2.2)]  # the last change is still 1.0 s
+
+    hold, notes = _hold(stale=1.0)
+    hold.odometry(1.0, MOVE)
+    assert hold.odometry(1.5, np.zeros(3)) == []
+    truth = TruthPose(1.52, 0.0, 0.0, 0.0)
+    assert hold.event(truth, needs_odometry=False) == [truth]  # nothing held before it
+    assert hold.event(_scan(1.55)) == []
+    assert hold.event(TruthPose(1.57, 0.0, 0.0, 0.0), needs_odometry=False) == []
+    assert _kinds(hold.odometry(1.6, MOVE)) == [
+        ("O", 1.546667),
+        ("L", 1.55),
+        ("T", 1.57),
+        ("O", 1.573333),
+        ("O", 1.6),
+    ]
+    assert notes["stale_spans"] == 1 and notes["stale_seconds"] == pytest.approx(0.6)
+
+
+# ------------------------------------------------------------------ ROS bags
+
+
+LAG = 0.05  # s: scans and range readings after the odometry message of their step
+
+
+def _later(topic: str, k: int, t: float) -> float:
+    return t if topic == "/odom" else t + LAG
+
+
+def _bag(tmp_path, ros1: bool, name: str, **kw):
+    """A bag of :func:`write_bag` whose scans and range readings come ``LAG`` s after the
+    odometry (header stamps and record times): no event shares a stamp with a sample."""
+    pytest.importorskip("rosbags")
+    p = tmp_path / (f"{name}.bag" if ros1 else name)
+    write_bag(p, ros1, header=_later, record=_later, **kw)
+    return p
+
+
+def _odometry_at(events, kind=LaserScan) -> np.ndarray:
+    """The odometry pose integrated from the delivered samples at each event of ``kind``."""
+    from factors.odometry import integrate_poses
+
+    o = CFG.odometry
+    pose, out = np.zeros(3), []
+    for e in events:
+        if isinstance(e, OdometryEvent):
+            lr, ll = e.ticks_right * o.metres_per_tick_right, e.ticks_left * o.metres_per_tick_left
+            pose = integrate_poses([lr], [ll], o.wheelbase, pose)[-1]
+        elif isinstance(e, kind):
+            out.append(pose.copy())
+    return np.array(out)
+
+
+@pytest.mark.parametrize("ros1", [True, False])
+def test_ros_frozen_odometry_is_held_and_spread(tmp_path, ros1):
+    """/odom repeats its pose of 1.5 s at 1.6-1.9 s while the robot drives on, then catches up
+    at 2.0 s (25 cm, 0.1 rad): the scans and range readings of 1.75 and 1.95 s are held and
+    come out among the catch-up's samples, so the odometry at every scan is the clean bag's;
+    one span of 0.5 s is counted, with the bound in the notes. Without the hold (stale = 0)
+    the scan of 1.95 s sees the robot 20 cm behind."""
+    frozen = _bag(tmp_path, ros1, "frozen", frozen=range(6, 10))
+    log = open_log(frozen, range_topics=["/sonar"])
+    events = list(log)
+    assert [e.t for e in events] == sorted(e.t for e in events)
+    assert sum(isinstance(e, LaserScan) for e in events) == 10
+    assert sum(isinstance(e, SonarReading) for e in events) == 10
+    notes = log.problems.notes["odometry"]
+    assert notes["stale_spans"] == 1 and notes["stale_seconds"] == pytest.approx(0.5)
+    assert notes["limits"]["stale_s"] == OdometryLimits().stale and notes["holes"] == 0
+    clean = list(open_log(_bag(tmp_path, ros1, "clean"), range_topics=["/sonar"]))
+    for kind in (LaserScan, SonarReading):
+        assert np.allclose(_odometry_at(events, kind), _odometry_at(clean, kind), atol=1e-3)
+    old = list(open_log(frozen, range_topics=["/sonar"], limits=OdometryLimits(stale=0.0)))
+    err = np.hypot(*(_odometry_at(old)[:, :2] - _odometry_at(clean)[:, :2]).T)
+    assert err.max() > 0.15
+
+
+@pytest.mark.parametrize("ros1", [True, False])
+def test_ros_odometry_frozen_beyond_stale_is_a_stop(tmp_path, ros1):
+    """/odom repeats its pose for the last 3 s of the bag (longer than ``stale``): a stop, not
+    stale; every scan comes out, in order, with no motion over the stop; no span counted."""
+    path = _bag(tmp_path, ros1, "stop", n=40, frozen=range(50, 80), with_range=False)
+    log = open_log(path)
+    events = list(log)
+    assert [e.t for e in events] == sorted(e.t for e in events)
+    assert sum(isinstance(e, LaserScan) for e in events) == 40
+    assert log.problems.notes["odometry"]["stale_spans"] == 0
+    assert OdometryLimits().stale < 3.0
+    odo = _odometry_at(events)
+    assert np.allclose(odo[25:], odo[24], atol=1e-4)  # scan 24 at 5.95 s, the last change 5.9 s
+    assert not np.allclose(odo[24], odo[23], atol=1e-2)
+
+
+def _carmen_twin(path, n: int, frozen: range) -> None:
+    """A raw CARMEN log of the drive of :func:`_bag`: an ``ODOM`` line per odometry message
+    (same stamps and poses, frozen alike), a 181-beam FLASER at each scan's stamp."""
+    lines = []
+    for k in range(2 * n):
+        t = 1.0 + 0.1 * k
+        pose = bag_drive(frozen.start - 1 if k in frozen else k)
+        lines.append(f"ODOM {fmt(pose)} 0 0 0 {t!r} h {t!r}")
+        if k % 2:
+            r, ts = fmt(np.full(181, 2.0)), t + LAG
+            lines.append(f"FLASER 181 {r} {fmt(pose)} {fmt(pose)} {ts!r} h {ts!r}")
+    path.write_text("\n".join(lines) + "\n")
+
+
+@pytest.mark.parametrize("frozen", [range(6, 10), range(3, 6), range(12, 19)])
+def test_carmen_and_ros_hold_alike(tmp_path, frozen):
+    """The same drive, odometry freeze and scan timing as a raw CARMEN log and a ROS 2 bag:
+    the same odometry samples and scan stamps, and the same stale notes."""
+    n = 12
+    bag = _bag(tmp_path, False, "bag", n=n, frozen=frozen, with_range=False)
+    carmen = tmp_path / "twin.log"
+    _carmen_twin(carmen, n, frozen)
+    logs = open_log(bag), open_log(carmen, mode="raw")
+    streams = [list(log) for log in logs]
+    for a, b in zip(*streams, strict=True):
+        assert type(a) is type(b) and a.t == pytest.approx(b.t, abs=1e-6)
+        if isinstance(a, OdometryEvent):
+            assert (a.ticks_right, a.ticks_left) == (b.ticks_right, b.ticks_left)
+    ros, car = (log.problems.notes["odometry"] for log in logs)
+    assert ros["stale_spans"] == car["stale_spans"] == 1
+    assert ros["stale_seconds"] == car["stale_seconds"] == pytest.approx(0.1 * (len(frozen) + 1))
+    assert ros["limits"] == car["limits"]
