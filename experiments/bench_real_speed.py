@@ -12,7 +12,8 @@ spent in loop-closure search (:meth:`fgslam.slam.loops.LoopCloser.try_close`), t
 attempts and the accepted closures. ``--compare REV`` checks REV out into a temporary git
 worktree and runs it alternately with this tree (REV first), so that both share the
 machine's load; on a shared machine compare CPU seconds, not wall seconds. The real-time
-factor is log seconds / CPU seconds. Prints one markdown row per run. ``--profile`` runs each
+factor is log seconds / CPU seconds; the peak RSS is the child's whole process (Python,
+numpy, GTSAM and the run). Prints one markdown row per run. ``--profile`` runs each
 child under cProfile with the process-time clock (the profiler inflates Python-heavy parts:
 read the shares; the table's CPU then includes it) and prints, after the table, where the CPU
 went (:func:`split`).
@@ -24,6 +25,7 @@ import argparse
 import cProfile
 import json
 import os
+import resource
 import subprocess
 import sys
 import tempfile
@@ -139,6 +141,8 @@ def child(log: str, backends: list[str], max_scans: int | None, profile: bool = 
             res.stats.get("loop_maps_built", res.stats.get("loop_closures_tried", 0))
         ),
         "profile": where,
+        # peak resident memory of the whole child process (Linux: ru_maxrss in KiB)
+        "max_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
     }
 
 
@@ -173,7 +177,7 @@ def row(label: str, r: dict) -> str:
     return (
         f"| {r['log']} | {r['backends']} | {label} | {r['log_s']:.0f} | {r['cpu_s']:.1f} | "
         f"{r['wall_s']:.1f} | {rt:.1f}x | {r['loop_cpu_s']:.1f} | {r['attempts']} | "
-        f"{r['accepted']} | {r['keyframes']} |"
+        f"{r['accepted']} | {r['keyframes']} | {r.get('max_rss_mib', float('nan')):.0f} |"
     )
 
 
@@ -237,9 +241,9 @@ def main() -> None:
         try:
             print(
                 "| log | backend | code | log (s) | CPU (s) | wall (s) | real time / CPU | "
-                "loop search CPU (s) | loop attempts | accepted | keyframes |"
+                "loop search CPU (s) | loop attempts | accepted | keyframes | peak RSS (MiB) |"
             )
-            print("|---|---|---|---|---|---|---|---|---|---|---|")
+            print("|---|---|---|---|---|---|---|---|---|---|---|---|")
             profiles = []
             for log in args.logs:
                 for _ in range(args.repeat):

@@ -4,7 +4,7 @@ the published figures.
 
 Run: python experiments/real_relations.py [--logs intel mit-csail freiburg-079]
        [--backends ekf isam2 batch] [--max-scans N] [--calibration off|wheels]
-       [--laser-calibration off|offset|range]
+       [--laser-calibration off|offset|range] [--line-end-trim K]
        [--corners with-lines|replace-lines|off]
 Reads ``../shared/data/<log>`` with fgslam.readers (corrected logs: odometry rebuilt, the
 corrected poses as reference; mit-csail: a raw log), runs the front end in "laser" mode and
@@ -106,6 +106,7 @@ def run(
     calibration: str | None = None,
     corners: str | None = None,
     laser_calibration: str | None = None,
+    line_end_trim: float | None = None,
 ) -> None:
     log_file, rel_file = FILES[name]
     path, rel = DATA / log_file, dense.read_relations(DATA / rel_file)
@@ -121,7 +122,7 @@ def run(
                 "scanmatch": MODES[mode],
                 "odometry": {"calibration": calibration},
                 "laser": {"calibration": laser_calibration},
-                "frontend": {"corners": corners},
+                "frontend": {"corners": corners, "line_end_trim": line_end_trim},
             },
         )
         sample = ScanSample(max_scans=1500)
@@ -189,6 +190,12 @@ def main() -> None:
         "configuration, off)",
     )
     ap.add_argument(
+        "--line-end-trim",
+        type=float,
+        help="line fits leave out end beams beyond this many robust sigmas (default: the "
+        "configuration's, 0: off)",
+    )
+    ap.add_argument(
         "--corners",
         choices=CORNER_CHOICES,
         help="corners with their lines (the paper), instead of them, or none (default: the "
@@ -212,6 +219,7 @@ def main() -> None:
                 calibration=args.calibration,
                 corners=args.corners,
                 laser_calibration=args.laser_calibration,
+                line_end_trim=args.line_end_trim,
             )
 
 
