@@ -93,17 +93,18 @@ def test_run_scan_matching_options(short_log, tmp_path, capsys):
 
 
 def test_run_calibration_option(short_log, tmp_path, capsys):
-    """--calibration wheels (the default robot's default): report.json holds the wheel
-    calibration errors with sigmas below the configuration's prior (learned from 25 s of
-    data), and the simulator's bias (0.6 %, 0.5 %, 0.5 %) within 3 sigma; with off, no
-    calibration entry."""
+    """--calibration wheels (the default robot's default, with its laser offset): report.json
+    holds the wheel calibration errors with sigmas below the configuration's prior (learned
+    from 25 s of data), and the simulator's bias (0.6 %, 0.5 %, 0.5 %) within 3 sigma; with
+    both off, no calibration entry."""
     out, plain = tmp_path / "cal", tmp_path / "plain"
     args = ["run", str(short_log), "--backend", "isam2", "--sensors", "fused"]
     assert main([*args, "--out", str(out)]) == 0
-    assert main([*args, "--calibration", "off", "--out", str(plain)]) == 0
+    off = ["--calibration", "off", "--laser-calibration", "off"]
+    assert main([*args, *off, "--out", str(plain)]) == 0
     cal = json.loads((out / "report.json").read_text())["calibration"]
-    assert cal["parameters"] == ["e_r", "e_l", "e_b"]
-    est, sig = cal["estimate"], cal["sigma"]
+    assert cal["parameters"] == ["e_r", "e_l", "e_b", "laser_offset"]
+    est, sig = cal["estimate"][:3], cal["sigma"][:3]
     assert all(s < 0.01 for s in sig[:2]) and all(s <= 0.01 for s in sig)
     for e, s, truth in zip(est, sig, (0.006, 0.005, 0.005), strict=True):
         assert abs(e - truth) < 3 * s, (est, sig)
