@@ -505,6 +505,18 @@ def test_corner_keeps_the_vertex_returns_between_its_lines():
     assert got == span - 2
 
 
+def _moved_as_predicted(fa, fb, o: float, s: float) -> float:
+    """Feature ``fb`` (ranges biased by offset o, scale s) differs from ``fa`` by fa.Jc (o, s)
+    to first order; returns the largest predicted move."""
+    dz = fb.z - fa.z
+    dz[0] = wrap_angle(dz[0])
+    if len(dz) == 3:
+        dz[2] = wrap_angle(dz[2])
+    pred = fa.Jc @ [o, s]
+    np.testing.assert_allclose(dz, pred, atol=5e-4 + 0.1 * np.abs(pred).max())
+    return float(np.abs(pred).max())
+
+
 @pytest.mark.parametrize("mode", ["laser", "fused"])
 def test_feature_calibration_jacobian_predicts_a_range_bias(mode):
     """The same scan with the laser's ranges read as r (1 + s) + o: every laser and fused
@@ -525,13 +537,7 @@ def test_feature_calibration_jacobian_predicts_a_range_bias(mode):
         if fa.source == "sonar":
             assert fa.Jc is None
             continue
-        dz = fb.z - fa.z
-        dz[0] = wrap_angle(dz[0])
-        if len(dz) == 3:
-            dz[2] = wrap_angle(dz[2])
-        pred = fa.Jc @ [o, s]
-        np.testing.assert_allclose(dz, pred, atol=5e-4 + 0.1 * np.abs(pred).max())
-        moved += np.abs(pred).max() > 0.005
+        moved += _moved_as_predicted(fa, fb, o, s) > 0.005
     assert moved >= 3  # the walls moved by more than 5 mm or rad
 
 
@@ -581,11 +587,6 @@ def test_fused_feature_calibration_jacobian_predicts_a_range_bias():
         for fa, fb in zip(sa.features, sb.features, strict=True):
             if fa.source != "fused":
                 continue
-            dz = fb.z - fa.z
-            dz[0] = wrap_angle(dz[0])
-            if len(dz) == 3:
-                dz[2] = wrap_angle(dz[2])
-            pred = fa.Jc @ [o, s]
-            np.testing.assert_allclose(dz, pred, atol=5e-4 + 0.1 * np.abs(pred).max())
+            _moved_as_predicted(fa, fb, o, s)
             checked += 1
     assert checked >= 5
