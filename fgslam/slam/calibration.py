@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.linalg import block_diag
 
 WHEEL_NAMES = ("e_r", "e_l", "e_b")
 LASER_NAMES = ("laser_offset", "laser_scale")  # the first one or both
@@ -46,10 +47,7 @@ class Calibration:
             names = names + n
         if not blocks:
             return None
-        prior = np.zeros((len(names), len(names)))
-        for part, cov in zip([p for p in sl if sl[p] is not None], blocks, strict=True):
-            prior[sl[part], sl[part]] = cov
-        return Calibration(prior, names, sl["wheels"], sl["laser"])
+        return Calibration(block_diag(*blocks), names, sl["wheels"], sl["laser"])
 
     @staticmethod
     def from_config(cfg) -> Calibration | None:
