@@ -16,7 +16,9 @@ factor is log seconds / CPU seconds; the peak RSS is the child's whole process (
 numpy, GTSAM and the run). Prints one markdown row per run. ``--profile`` runs each
 child under cProfile with the process-time clock (the profiler inflates Python-heavy parts:
 read the shares; the table's CPU then includes it) and prints, after the table, where the CPU
-went (:func:`split`).
+went (:func:`split`). ``--split`` instead times the main stages with the process-time clock
+around each call (no profiler, so the shares are those of a normal run; :func:`timers`) and
+prints them after the table.
 """
 
 from __future__ import annotations
@@ -88,7 +90,85 @@ def split(stats) -> dict:
     return out
 
 
-def child(log: str, backends: list[str], max_scans: int | None, profile: bool = False) -> dict:
+# (key, label): stages timed by ``--split``; an indented label is part of the row above it
+SPLIT_ROWS = [
+    ("total", "total"),
+    ("front_end", "front end, every scan (FrontEnd.process_scan)"),
+    ("scan_odometry", "- of it the scan odometry (ScanOdometry.add: a match per scan)"),
+    ("step", "SLAM step, every keyframe (SlamStep.keyframe)"),
+    ("loops", "- of it the loop-closure search (LoopCloser.try_close)"),
+    ("commit", "- of it the backend's commit (iSAM2 update, estimate)"),
+    ("match", "scan matches, anywhere (scanmatch.match)"),
+    ("search", "- of it the correlative search"),
+    ("icp", "- of it ICP (from each basin)"),
+    ("build", "references built, anywhere (Reference.build)"),
+]
+
+
+def timers() -> dict:
+    """Wrap the stages of :data:`SPLIT_ROWS` so that each call adds its process CPU time to
+    the returned dict (seconds, and ``<key>_calls``)."""
+    import functools
+
+    from fgslam import scanmatch
+    from fgslam.frontend.pipeline import FrontEnd
+    from fgslam.slam import keyframes, loops, step
+    from fgslam.slam.graph import GraphBackend
+
+    spent: dict = {}
+
+    def timed(key, f):
+        @functools.wraps(f)
+        def g(*a, **kw):
+            t0 = time.process_time()
+            try:
+                return f(*a, **kw)
+            finally:
+                spent[key] = spent.get(key, 0.0) + time.process_time() - t0
+                spent[key + "_calls"] = spent.get(key + "_calls", 0) + 1
+
+        return g
+
+    for owner, name, key in [
+        (FrontEnd, "process_scan", "front_end"),
+        (keyframes.ScanOdometry, "add", "scan_odometry"),
+        (step.SlamStep, "keyframe", "step"),
+        (loops.LoopCloser, "try_close", "loops"),
+        (GraphBackend, "commit", "commit"),
+        (scanmatch, "_search", "search"),
+        (scanmatch, "_icp", "icp"),
+    ]:
+        setattr(owner, name, timed(key, getattr(owner, name)))
+    build = timed("build", scanmatch.Reference.build.__func__)
+    scanmatch.Reference.build = classmethod(build)
+    match = timed("match", scanmatch.match)
+    keyframes.match = loops.match = scanmatch.match = match
+    return spent
+
+
+def print_splits(runs: list[tuple[str, dict]]) -> None:
+    """One column per ``--split`` run: CPU seconds (and calls) per stage."""
+    print()
+    heads = [f"{r['log']} {r['backends']} {label}" for label, r in runs]
+    print("| CPU (s), process clock around each call | " + " | ".join(heads) + " |")
+    print("|---|" + "---|" * len(heads))
+    for key, name in SPLIT_ROWS:
+        cells = []
+        for _, r in runs:
+            sp = r["split"]
+            v = r["cpu_s"] if key == "total" else sp.get(key, 0.0)
+            n = sp.get(key + "_calls")
+            cells.append(f"{v:.1f}" + (f" ({n} calls)" if n else ""))
+        print(f"| {name} | " + " | ".join(cells) + " |")
+
+
+def child(
+    log: str,
+    backends: list[str],
+    max_scans: int | None,
+    profile: bool = False,
+    split_: bool = False,
+) -> dict:
     """One run in this process (the fgslam on ``sys.path``): its measurements."""
     from real_carmen import limited  # the same scan limit as the other real-log experiments
 
@@ -109,6 +189,7 @@ def child(log: str, backends: list[str], max_scans: int | None, profile: bool = 
             loop_cpu[0] += time.process_time() - t0
 
     loops.LoopCloser.try_close = timed
+    spent = timers() if split_ else {}
 
     reader = open_log(DATA / FILES[log])
     cfg = with_scanmatch(reader.config, SCAN)
@@ -141,13 +222,19 @@ def child(log: str, backends: list[str], max_scans: int | None, profile: bool = 
             res.stats.get("loop_maps_built", res.stats.get("loop_closures_tried", 0))
         ),
         "profile": where,
+        "split": spent,
         # peak resident memory of the whole child process (Linux: ru_maxrss in KiB)
         "max_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
     }
 
 
 def run_child(
-    tree: Path, log: str, backends: list[str], max_scans: int | None, profile: bool = False
+    tree: Path,
+    log: str,
+    backends: list[str],
+    max_scans: int | None,
+    profile: bool = False,
+    split_: bool = False,
 ) -> dict:
     env = dict(os.environ, PYTHONPATH=str(tree))
     cmd = [sys.executable, str(Path(__file__).resolve()), "--child", "--logs", log]
@@ -156,6 +243,8 @@ def run_child(
         cmd += ["--max-scans", str(max_scans)]
     if profile:
         cmd.append("--profile")
+    if split_:
+        cmd.append("--split")
     out = subprocess.run(cmd, env=env, check=True, capture_output=True, text=True).stdout
     return json.loads(out.strip().splitlines()[-1])
 
@@ -223,10 +312,14 @@ def main() -> None:
     ap.add_argument("--compare", metavar="REV", help="also run this git revision, alternately")
     ap.add_argument("--repeat", type=int, default=1, help="runs of each tree per log")
     ap.add_argument("--profile", action="store_true", help="where the CPU goes (cProfile)")
+    ap.add_argument(
+        "--split", action="store_true", help="CPU per stage, timed around each call (no profiler)"
+    )
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
-        print(json.dumps(child(args.logs[0], args.backends, args.max_scans, args.profile)))
+        out = child(args.logs[0], args.backends, args.max_scans, args.profile, args.split)
+        print(json.dumps(out))
         return
     trees = [(revision(ROOT), ROOT)]
     with tempfile.TemporaryDirectory(prefix="bench_real_speed_") as tmp:
@@ -248,11 +341,15 @@ def main() -> None:
             for log in args.logs:
                 for _ in range(args.repeat):
                     for label, tree in trees:
-                        r = run_child(tree, log, args.backends, args.max_scans, args.profile)
+                        r = run_child(
+                            tree, log, args.backends, args.max_scans, args.profile, args.split
+                        )
                         print(row(label, r), flush=True)
                         profiles.append((label, r))
             if args.profile:
                 print_profiles(profiles)
+            if args.split:
+                print_splits(profiles)
         finally:
             if args.compare:
                 subprocess.run(

@@ -636,9 +636,10 @@ def _icp(
     params: MatchParams,
     join: tuple[NDArray, float, float] | None = None,
 ) -> _Icp | None:
-    """Point-to-line ICP from ``pose0``. ``join``: (poses (k, 3), xy, theta tolerances): if an
-    iterate comes within them of one of those poses (other runs' results), stop and return
-    None: this run is that basin (the caller drops runs that end in one)."""
+    """Point-to-line ICP from ``pose0``. ``join``: (poses (k, 3), xy and theta tolerances):
+    stop and return None once an iterate, moving by less than the tolerances' tenth, lies
+    within them of one of those poses (other runs' converged results): this run has reached
+    that basin's fixed point (the caller drops runs that end in a basin already found)."""
     pose = pose0.astype(float).copy()
     sigma = max(params.sigma_range, 1e-4)
     scale = params.robust_scale
@@ -666,7 +667,11 @@ def _icp(
         if not np.isfinite(delta).all():
             break
         pose = _expmap(pose, delta)
-        if join is not None:
+        if (
+            join is not None
+            and np.hypot(delta[0], delta[1]) < 0.1 * join[1]
+            and abs(delta[2]) < 0.1 * join[2]
+        ):
             d = join[0] - pose
             d[:, 2] = (d[:, 2] + math.pi) % (2 * math.pi) - math.pi
             if ((np.hypot(d[:, 0], d[:, 1]) <= join[1]) & (np.abs(d[:, 2]) <= join[2])).any():
@@ -816,10 +821,10 @@ def match(
         s2_0 = max(params.sigma_range**2, float(icp.r @ icp.r) / max(len(icp.r) - 3, 1))
         runs = [(icp, _costs(ref, qc, icp.pose, s2_0, params), 0)]
         for k in range(1, len(seeds)):
-            # a run that reaches a basin already found (within a cell and a step) is that
-            # basin: stopped there (_same would drop it at the end)
+            # a run that settles next to a basin already found is that basin: stopped there
+            # (_same would drop it at the end)
             done = np.array([a.pose for a, _, _ in runs])
-            alt = _icp(ref, q, seed_poses[k], params, (done, res, resp.step))
+            alt = _icp(ref, q, seed_poses[k], params, (done, 0.5 * res, 0.5 * resp.step))
             # one run per basin (the first, by score), and only inside the window
             if (
                 alt is not None

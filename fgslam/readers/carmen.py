@@ -91,7 +91,8 @@ def _floats(tok: list[str], what: str) -> list[float]:
         out = [float(x) for x in tok]
     except ValueError:
         raise _Bad(f"{what}: expected numbers") from None
-    if not all(math.isfinite(v) for v in out):
+    # the sum is finite if every number is (a NaN or inf spreads); only then can it overflow
+    if not math.isfinite(sum(out)) and not all(map(math.isfinite, out)):
         raise _Bad(f"{what}: expected finite numbers")
     return out
 
