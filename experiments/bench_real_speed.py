@@ -2,8 +2,10 @@
 at least 10x faster than real time, Freiburg 079 at least 5x), optionally side by side with
 another revision of the code.
 
-Run: python experiments/bench_real_speed.py [--logs mit-csail freiburg-079]
-       [--backends isam2] [--max-scans N] [--compare REV] [--repeat N] [--profile]
+Run: python experiments/bench_real_speed.py [--logs mit-csail freiburg-079 intel corridor]
+       [--backends isam2] [--max-scans N] [--compare REV] [--repeat N] [--profile | --split]
+(``corridor``: the simulated corridor of seed 1, simulated first and not timed, fused sensors;
+issue 18's corridor target.)
 Each run is a child process (``PYTHONPATH`` = the tree under test) that reads
 ``../shared/data/<log>``, runs :func:`fgslam.slam.runner.run_backends` with the scan-matching
 defaults (``experiments/real_relations.py``'s "scan" mode: scan and wheel odometry, keyframes
@@ -191,13 +193,25 @@ def child(
     loops.LoopCloser.try_close = timed
     spent = timers() if split_ else {}
 
-    reader = open_log(DATA / FILES[log])
+    sensors = "laser"
+    if log == "corridor":  # the simulated corridor (seed 1), fused, the default pipeline
+        from fgslam.config import load_config
+        from fgslam.logfile import LogReader
+        from fgslam.sim import simulate_to_log
+        from fgslam.sim.world import load_world
+
+        tmp = tempfile.TemporaryDirectory(prefix="bench_corridor_")  # removed when the run ends
+        path = Path(tmp.name) / "corridor.log.gz"
+        simulate_to_log(load_world("corridor"), load_config(), path, 1, None)
+        reader, sensors = LogReader(path), "fused"
+    else:
+        reader = open_log(DATA / FILES[log])
     cfg = with_scanmatch(reader.config, SCAN)
     prof = cProfile.Profile(time.process_time) if profile else None
     c0, w0 = time.process_time(), time.perf_counter()
     if prof is not None:
         prof.enable()
-    results = run_backends(limited(reader, max_scans), cfg, backends, "laser")
+    results = run_backends(limited(reader, max_scans), cfg, backends, sensors)
     if prof is not None:
         prof.disable()
     cpu, wall = time.process_time() - c0, time.perf_counter() - w0
@@ -306,7 +320,9 @@ def print_profiles(profiles: list[tuple[str, dict]]) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--logs", nargs="+", default=["mit-csail", "freiburg-079"], choices=FILES)
+    ap.add_argument(
+        "--logs", nargs="+", default=["mit-csail", "freiburg-079"], choices=[*FILES, "corridor"]
+    )
     ap.add_argument("--backends", nargs="+", default=["isam2"])
     ap.add_argument("--max-scans", type=int, default=None)
     ap.add_argument("--compare", metavar="REV", help="also run this git revision, alternately")
