@@ -4,6 +4,8 @@ cases on the room log are in test_readers_sanity.py)."""
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 from readers_helpers import bag_drive, fmt, write_bag
@@ -207,3 +209,19 @@ def test_carmen_and_ros_hold_alike(tmp_path, frozen):
     assert ros["stale_spans"] == car["stale_spans"] == 1
     assert ros["stale_seconds"] == car["stale_seconds"] == pytest.approx(0.1 * (len(frozen) + 1))
     assert ros["limits"] == car["limits"]
+
+
+def test_a_second_read_counts_each_record_once(tmp_path):
+    """Reading a CARMEN log or a bag again gives the same events and the same problems and
+    notes: the counts of a pass start from zero (they used to add up)."""
+    frozen = range(4, 7)
+    bag = _bag(tmp_path, False, "bag", n=12, frozen=frozen, with_range=False)
+    carmen = tmp_path / "twin.log"
+    _carmen_twin(carmen, 12, frozen)
+    with open(carmen, "a") as f:
+        f.write("NEFF 1 2 3\n")  # an unknown record: skipped and counted
+    for log in (open_log(bag), open_log(carmen, mode="raw")):
+        first, notes = _kinds(log), copy.deepcopy(log.problems.summary())
+        assert _kinds(log) == first and log.problems.summary() == notes
+        assert notes["odometry"]["stale_spans"] == 1
+    assert notes["skipped_by_reason"] == {"unknown record NEFF": 1}

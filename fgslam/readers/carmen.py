@@ -280,6 +280,11 @@ class CarmenLog(Source):
             record["repeat_lines_not_stamped_0"] = int(odd_repeats)
         self.meta["timestamps"] = record
         self.problems.notes["timestamps"] = record
+        self._new_pass()
+
+    def _new_pass(self) -> None:
+        """Fresh counts for a pass over the events (the odometry notes and the problems)."""
+        self.problems.new_pass()
         self._odo_notes: dict = {
             "holes": 0,
             "hole_seconds": 0.0,
@@ -365,6 +370,7 @@ class CarmenLog(Source):
     # ------------------------------------------------------------------ events
 
     def __iter__(self) -> Iterator[Event]:
+        self._new_pass()
         drive = VirtualDrive(self.config)
         pr = self.problems
         notes = self._odo_notes

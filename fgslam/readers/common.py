@@ -70,6 +70,13 @@ class Problems:
     def skipped(self) -> int:
         return sum(self.skipped_by_reason.values())
 
+    def new_pass(self) -> None:
+        """Forget the counts of an earlier pass over the events (a reader read again counts
+        each record once); the notes of the reader's set-up stay."""
+        self.skipped_by_reason.clear()
+        self.backwards.clear()
+        self.problems.clear()
+
     def skip(self, reason: str, message: str | None = None) -> None:
         self.skipped_by_reason[reason] += 1
         if message and len(self.problems) < MAX_PROBLEMS:

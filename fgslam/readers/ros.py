@@ -182,6 +182,11 @@ class RosBag(Source):
             "timestamps": clock_record,
         }
         self.problems.notes["timestamps"] = clock_record
+        self._new_pass()
+
+    def _new_pass(self) -> None:
+        """Fresh counts for a pass over the events (the odometry notes and the problems)."""
+        self.problems.new_pass()
         self._odo_notes: dict[str, Any] = {
             "holes": 0,
             "implausible": 0,
@@ -275,6 +280,7 @@ class RosBag(Source):
         return found[0]
 
     def __iter__(self) -> Iterator[Event]:
+        self._new_pass()
         drive = VirtualDrive(self.config)
         hold = StaleOdometryHold(drive, self.limits, self._odo_notes)
         pr = self.problems
