@@ -150,18 +150,24 @@ def timers() -> dict:
 
 def print_splits(runs: list[tuple[str, dict]]) -> None:
     """One column per ``--split`` run: CPU seconds (and calls) per stage."""
-    print()
+
+    def cell(key: str, r: dict) -> str:
+        v = r["cpu_s"] if key == "total" else r["split"].get(key, 0.0)
+        n = r["split"].get(key + "_calls")
+        return f"{v:.1f}" + (f" ({n} calls)" if n else "")
+
     heads = [f"{r['log']} {r['backends']} {label}" for label, r in runs]
-    print("| CPU (s), process clock around each call | " + " | ".join(heads) + " |")
+    columns("CPU (s), process clock around each call", heads, SPLIT_ROWS, runs, cell)
+
+
+def columns(title: str, heads: list[str], rows: list, runs: list, cell) -> None:
+    """A markdown table: a row per (key, name) of ``rows``, a column per run, ``cell(key,
+    run)`` in each."""
+    print()
+    print(f"| {title} | " + " | ".join(heads) + " |")
     print("|---|" + "---|" * len(heads))
-    for key, name in SPLIT_ROWS:
-        cells = []
-        for _, r in runs:
-            sp = r["split"]
-            v = r["cpu_s"] if key == "total" else sp.get(key, 0.0)
-            n = sp.get(key + "_calls")
-            cells.append(f"{v:.1f}" + (f" ({n} calls)" if n else ""))
-        print(f"| {name} | " + " | ".join(cells) + " |")
+    for key, name in rows:
+        print(f"| {name} | " + " | ".join(cell(key, r) for _, r in runs) + " |")
 
 
 def child(
@@ -302,20 +308,17 @@ PROFILE_ROWS = [
 
 def print_profiles(profiles: list[tuple[str, dict]]) -> None:
     """One column per profiled run: CPU seconds under the profiler."""
-    print()
+
+    def cell(key: str, r: dict) -> str:
+        p = dict(r["profile"])
+        p["loop_rest"] = p["loop_search"] - p["loop_matches"] - p["loop_map_builds"]
+        out = f"{p[key]:.1f}"
+        if key == "loop_search":
+            out += f" ({r['attempts']} matches, {r['maps_built']} local maps built)"
+        return out
+
     heads = [f"{r['log']} {label}" for label, r in profiles]
-    print("| CPU under the profiler (s) | " + " | ".join(heads) + " |")
-    print("|---|" + "---|" * len(heads))
-    for key, name in PROFILE_ROWS:
-        cells = []
-        for _, r in profiles:
-            p = dict(r["profile"])
-            p["loop_rest"] = p["loop_search"] - p["loop_matches"] - p["loop_map_builds"]
-            cell = f"{p[key]:.1f}"
-            if key == "loop_search":
-                cell += f" ({r['attempts']} matches, {r['maps_built']} local maps built)"
-            cells.append(cell)
-        print(f"| {name} | " + " | ".join(cells) + " |")
+    columns("CPU under the profiler (s)", heads, PROFILE_ROWS, profiles, cell)
 
 
 def main() -> None:
