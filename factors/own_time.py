@@ -16,6 +16,7 @@ import gtsam
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from factors.calibrated import calibrated
 from factors.geometry import to_body_jacobian
 
 # residual(pose_world, landmark, z) -> (e, H_pose_world (k x 3), H_landmark (k x dim))
@@ -44,11 +45,15 @@ def interpolated_factor(
     s: float,
     z: ArrayLike,
     noise: gtsam.noiseModel.Base,
+    cal_key: int | None = None,
+    cal_jacobian: ArrayLike | None = None,
 ) -> gtsam.CustomFactor:
     """A factor on keyframe poses ``key_a``, ``key_b`` and a vector landmark ``key_l``: the
     measurement ``z`` (robot frame at its own time) taken from the pose at fraction ``s``
     between them (:func:`interpolate_pose`); ``residual`` is the kind's prediction -
-    measurement with world-frame Jacobians (e.g. :func:`factors.point.point_residual`)."""
+    measurement with world-frame Jacobians (e.g. :func:`factors.point.point_residual`). With
+    ``cal_key`` the measurement reads z + ``cal_jacobian`` c
+    (:func:`factors.calibrated.calibrated`)."""
     z = np.asarray(z, dtype=float)
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
@@ -60,4 +65,6 @@ def interpolated_factor(
             H[0], H[1], H[2] = Hp @ Ha, Hp @ Hb, Hl
         return e
 
+    if cal_key is not None:
+        return calibrated(noise, [key_a, key_b, key_l], cal_key, cal_jacobian, error)
     return gtsam.CustomFactor(noise, [key_a, key_b, key_l], error)

@@ -5,6 +5,8 @@ frame. The plain functions give Jacobians w.r.t. the robot's world (x, y, th) an
 world (px, py) for the EKF. In the factor graph the built-in C++ ``BearingRangeFactor2D``
 is used: the measurement is moved from the sensor frame into the robot frame (an exact map of
 the mean; the covariance is carried by its Jacobian, exact when the mount is a pure rotation).
+A measurement that moves with a calibration variable (the speed of sound) is a Python factor
+of the same error.
 """
 
 from __future__ import annotations
@@ -15,7 +17,8 @@ import gtsam
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from factors.geometry import bearing_range, sensor_pose, wrap_angle
+from factors.calibrated import calibrated
+from factors.geometry import bearing_range, sensor_pose, to_body_jacobian, wrap_angle
 from factors.line import IDENTITY_MOUNT, Mount
 
 
@@ -53,10 +56,11 @@ def point_to_world(
     return np.array([xs + r * ca, ys + r * sa]), H_s @ Js, H_z
 
 
-def bearing_range_to_robot_frame(
-    measured: ArrayLike, covariance: ArrayLike, mount: Mount
+def bearing_range_in_frame(
+    measured: ArrayLike, mount: Mount
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Move a sensor-frame (phi, r) and its 2x2 covariance into the robot frame."""
+    """A sensor-frame (phi, r) as (bearing, range) in the frame the sensor's ``mount`` is
+    given in, and its Jacobian w.r.t. (phi, r) (2x2)."""
     phi, r = float(measured[0]), float(measured[1])
     mx, my, mth = mount
     a = phi + mth
@@ -66,9 +70,16 @@ def bearing_range_to_robot_frame(
     # d(px, py)/d(phi, r)
     Jp = np.array([[-r * math.sin(a), math.cos(a)], [r * math.cos(a), math.sin(a)]])
     Jbr = np.array([[-py / rr2, px / rr2], [px / rr, py / rr]])
-    J = Jbr @ Jp
+    return np.array([math.atan2(py, px), rr]), Jbr @ Jp
+
+
+def bearing_range_to_robot_frame(
+    measured: ArrayLike, covariance: ArrayLike, mount: Mount
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Move a sensor-frame (phi, r) and its 2x2 covariance into the robot frame."""
+    z, J = bearing_range_in_frame(measured, mount)
     C = J @ np.asarray(covariance, dtype=float) @ J.T
-    return np.array([math.atan2(py, px), rr]), 0.5 * (C + C.T)
+    return z, 0.5 * (C + C.T)
 
 
 def point_factor(
@@ -78,12 +89,27 @@ def point_factor(
     covariance: ArrayLike,
     mount: Mount = IDENTITY_MOUNT,
     robust: gtsam.noiseModel.mEstimator.Base | None = None,
-) -> gtsam.BearingRangeFactor2D:
+    cal_key: int | None = None,
+    cal_jacobian: ArrayLike | None = None,
+) -> gtsam.NonlinearFactor:
     """Built-in ``BearingRangeFactor2D`` for a sensor-frame (phi, r) with 2x2 covariance
     (order [bearing, range], as GTSAM's error); ``robust``: an M-estimator wrapped around
-    the Gaussian noise (``noiseModel.Robust``)."""
+    the Gaussian noise (``noiseModel.Robust``). With ``cal_key`` (a calibration ``Vector``)
+    the robot-frame measurement reads z + ``cal_jacobian`` c
+    (:func:`factors.calibrated.calibrated`; a Python factor of the same error)."""
     z, C = bearing_range_to_robot_frame(measured, covariance, mount)
     noise = gtsam.noiseModel.Gaussian.Covariance(C)
     if robust is not None:
         noise = gtsam.noiseModel.Robust.Create(robust, noise)
-    return gtsam.BearingRangeFactor2D(pose_key, point_key, gtsam.Rot2(z[0]), z[1], noise)
+    if cal_key is None:
+        return gtsam.BearingRangeFactor2D(pose_key, point_key, gtsam.Rot2(z[0]), z[1], noise)
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
+        p = values.atPose2(pose_key)
+        th = p.theta()
+        e, Hx, Hp = point_residual((p.x(), p.y(), th), values.atVector(point_key), z)
+        if H is not None:
+            H[0], H[1] = to_body_jacobian(Hx, th), Hp
+        return e
+
+    return calibrated(noise, [pose_key, point_key], cal_key, cal_jacobian, error)

@@ -14,6 +14,7 @@ LASER_CALIBRATION_CHOICES = ("off", "offset", "range")
 CORNER_CHOICES = ("with-lines", "replace-lines", "off")
 POINTS_FROM_CHOICES = ("any-echo", "unfused-echoes")
 SONAR_TIMING_CHOICES = ("scan-frame", "own-time")
+SONAR_CALIBRATION_CHOICES = ("off", "sound")
 
 # (section, key) -> choices
 CHOICES = {
@@ -21,6 +22,7 @@ CHOICES = {
     ("frontend", "corners"): CORNER_CHOICES,
     ("frontend", "points_from"): POINTS_FROM_CHOICES,
     ("sonar", "timing"): SONAR_TIMING_CHOICES,
+    ("sonar", "calibration"): SONAR_CALIBRATION_CHOICES,
     ("odometry", "calibration"): CALIBRATION_CHOICES,
     ("laser", "calibration"): LASER_CALIBRATION_CHOICES,
 }

@@ -19,6 +19,7 @@ from fgslam.choices import (
     CALIBRATION_CHOICES,
     LASER_CALIBRATION_CHOICES,
     SCANMATCH_CHOICES,
+    SONAR_CALIBRATION_CHOICES,
     SONAR_TIMING_CHOICES,
 )
 from fgslam.errors import UserError
@@ -625,6 +626,13 @@ def _add_scanmatch_arguments(p: argparse.ArgumentParser) -> None:
         "line and corner covariance (default: the configuration's [laser] calibration)",
     )
     g.add_argument(
+        "--sonar-calibration",
+        choices=SONAR_CALIBRATION_CHOICES,
+        help="estimate the relative error of the speed of sound the sonar assumes (air "
+        "temperature; report.json: calibration) with the map, or take the nominal one "
+        "(default: the configuration's [sonar] calibration)",
+    )
+    g.add_argument(
         "--sonar-timing",
         choices=SONAR_TIMING_CHOICES,
         help="iSAM2 and batch: attach each sonar point or plane measurement to the pose at "
@@ -644,7 +652,10 @@ def _config_options(args: argparse.Namespace) -> dict[str, dict]:
         },
         "odometry": {"calibration": getattr(args, "calibration", None)},
         "laser": {"calibration": getattr(args, "laser_calibration", None)},
-        "sonar": {"timing": getattr(args, "sonar_timing", None)},
+        "sonar": {
+            "timing": getattr(args, "sonar_timing", None),
+            "calibration": getattr(args, "sonar_calibration", None),
+        },
     }
 
 

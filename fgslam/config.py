@@ -182,6 +182,20 @@ class SonarConfig:
     # pose at the reading's own time, interpolated between the keyframes around it; DESIGN
     # 6). The EKF keeps no past poses and always uses the scan frame.
     timing: str = "scan-frame"
+    # "sound" estimates the relative error of the assumed speed of sound (every echo's range
+    # reads r (1 + sound); one graph variable with the others, an EKF state) with the prior
+    # sigma sound_bias_sigma; the sonar points, planes and fusions then carry its Jacobian.
+    # "off": the paper's random relative range error alone (sigma_sound_rel).
+    calibration: str = "off"
+    sound_bias_sigma: float = 0.01
+
+    def calibration_prior(self) -> Any:
+        """The prior covariance (1x1) of the estimated speed-of-sound error, or None."""
+        if self.calibration == "off":
+            return None
+        import numpy as np
+
+        return np.array([[self.sound_bias_sigma**2]])
 
     @property
     def sigma_bearing(self) -> float:
@@ -413,6 +427,7 @@ _POSITIVE = {
     "laser.baud_rate",
     "sonar.sigma_bearing_deg",
     "sonar.sigma_sound_rel",
+    "sonar.sound_bias_sigma",
     "sonar.max_range_plane",
     "sonar.max_range_corner",
     "sonar.max_range_edge",

@@ -28,10 +28,18 @@ QUIET = SimParams(
 
 
 def scene_events(
-    world_dict, pose=(0.0, 0.0, 0.0), seed=0, params=QUIET, cfg=CFG, t_scan=6.5, sonar=True
+    world_dict,
+    pose=(0.0, 0.0, 0.0),
+    seed=0,
+    params=QUIET,
+    cfg=CFG,
+    t_scan=6.5,
+    sonar=True,
+    sound_bias=0.0,
 ):
-    """Events of a robot standing at ``pose`` for 13 s: odometry (no motion), sonar sweeping,
-    and one laser scan at t_scan. Returns (events in time order, the scan's ranges)."""
+    """Events of a robot standing at ``pose`` for 13 s: odometry (no motion), sonar sweeping
+    (its ranges read r (1 + sound_bias)), and one laser scan at t_scan. Returns (events in
+    time order, the scan's ranges)."""
     world = parse_world({"name": "scene", **world_dict}, "<scene>")
     rng = np.random.default_rng(seed)
     evs = [OdometryEvent(round(0.01 * k, 2), 0, 0) for k in range(1, 1301)]
@@ -54,7 +62,7 @@ def scene_events(
                     y + s * arr.mount.x + c * arr.mount.y,
                     a,
                 )
-                e = sonar_echoes(world, cfg.sonar, params, sp, t, rng, 0.0)
+                e = sonar_echoes(world, cfg.sonar, params, sp, t, rng, sound_bias)
                 evs.append(SonarReading(t, i, pan, e))
     evs.sort(key=lambda e: e.t)
     return evs, ranges

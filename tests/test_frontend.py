@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections import Counter
 
 import numpy as np
 import pytest
@@ -505,14 +506,15 @@ def test_corner_keeps_the_vertex_returns_between_its_lines():
     assert got == span - 2
 
 
-def _moved_as_predicted(fa, fb, o: float, s: float) -> float:
-    """Feature ``fb`` (ranges biased by offset o, scale s) differs from ``fa`` by fa.Jc (o, s)
-    to first order; returns the largest predicted move."""
+def _moved_as_predicted(fa, fb, c) -> float:
+    """Feature ``fb`` (ranges biased by ``c``: laser offset, laser scale, speed of sound, the
+    columns of Feature.Jc) differs from ``fa`` by fa.Jc c to first order; returns the largest
+    predicted move."""
     dz = fb.z - fa.z
     dz[0] = wrap_angle(dz[0])
     if len(dz) == 3:
         dz[2] = wrap_angle(dz[2])
-    pred = fa.Jc @ [o, s]
+    pred = fa.Jc @ c
     np.testing.assert_allclose(dz, pred, atol=5e-4 + 0.1 * np.abs(pred).max())
     return float(np.abs(pred).max())
 
@@ -535,9 +537,9 @@ def test_feature_calibration_jacobian_predicts_a_range_bias(mode):
     moved = 0
     for fa, fb in zip(a, b, strict=True):
         if fa.source == "sonar":
-            assert fa.Jc is None
+            assert not fa.Jc[:, :2].any()  # no laser range in z
             continue
-        moved += _moved_as_predicted(fa, fb, o, s) > 0.005
+        moved += _moved_as_predicted(fa, fb, [o, s, 0.0]) > 0.005
     assert moved >= 3  # the walls moved by more than 5 mm or rad
 
 
@@ -587,6 +589,62 @@ def test_fused_feature_calibration_jacobian_predicts_a_range_bias():
         for fa, fb in zip(sa.features, sb.features, strict=True):
             if fa.source != "fused":
                 continue
-            _moved_as_predicted(fa, fb, o, s)
+            _moved_as_predicted(fa, fb, [o, s, 0.0])
             checked += 1
     assert checked >= 5
+
+
+def test_sonar_feature_sound_jacobian_predicts_a_speed_of_sound_error():
+    """The same scene with every echo's range read r (1 + b) (the speed of sound b off),
+    sonar only: every point and plane (robot frame) moves by its Jc (0, 0, b), to first
+    order."""
+    b = 0.01
+    runs = []
+    for bias in (0.0, b):
+        evs, _ = scene_events(ROOM, (0.3, -0.2, 0.4), seed=4, sound_bias=bias)
+        runs.append([f for sf in run_frontend(evs, "sonar") for f in sf.features])
+    a, c = runs
+    assert [f.kind for f in a] == [f.kind for f in c]
+    moved = Counter()
+    for fa, fc in zip(a, c, strict=True):
+        assert not fa.Jc[:, :2].any()  # no laser range in z
+        moved[fa.kind] += _moved_as_predicted(fa, fc, [0.0, 0.0, b]) > 0.003
+    assert moved["line"] >= 3 and moved["point"] >= 3, moved
+
+
+def test_fused_feature_sound_jacobian_predicts_a_speed_of_sound_error():
+    """On 30 s of the simulated corridor, fused: with the run's speed of sound off by b
+    (the simulator's per-run draw, :func:`sound_speed_bias`), every fused line and corner
+    and every sonar point moves by its Jc (0, 0, b); a laser feature's sound column is
+    zero."""
+    import dataclasses
+
+    from fgslam.config import load_config
+    from fgslam.sim.simulate import events, plan_run, sound_speed_bias
+    from fgslam.sim.world import load_world
+
+    cfg, w = load_config(), load_world("corridor")
+    quiet = dataclasses.replace(QUIET, sound_speed_bias_sigma=0.0)
+    biased = dataclasses.replace(QUIET, sound_speed_bias_sigma=0.02)
+    b = sound_speed_bias(2, biased)
+    assert abs(b) > 0.005
+    run = plan_run(w, cfg, seed=2, duration=30.0)
+    a, c = (run_frontend(list(events(w, cfg, run, p)), "fused", cfg) for p in (quiet, biased))
+    checked, predicted = Counter(), Counter()
+    for sa, sc in zip(a, c, strict=True):
+        if [(f.kind, f.source) for f in sa.features] != [(f.kind, f.source) for f in sc.features]:
+            continue
+        for fa, fc in zip(sa.features, sc.features, strict=True):
+            if fa.source == "laser":  # (moved echoes may segment its scan otherwise)
+                assert not fa.Jc[:, 2].any()
+                continue
+            dz = fc.z - fa.z
+            dz[0] = wrap_angle(dz[0])
+            dz[2:] = [wrap_angle(v) for v in dz[2:]]
+            pred = fa.Jc @ [0.0, 0.0, b]
+            checked[fa.source] += 1
+            predicted[fa.source] += np.allclose(dz, pred, atol=5e-4 + 0.1 * np.abs(pred).max())
+    assert checked["fused"] >= 20 and checked["sonar"] >= 20, checked
+    assert predicted["fused"] == checked["fused"], (predicted, checked)
+    # a point is the echo nearest its cluster's centre, which the bias may make another one
+    assert predicted["sonar"] >= 0.9 * checked["sonar"], (predicted, checked)

@@ -34,6 +34,11 @@ class End(StrEnum):
         return self is not End.FIELD_OF_VIEW
 
 
+# the range error sources a feature's Jc is taken against, in its column order: a laser range
+# reads r (1 + laser_scale) + laser_offset, a sonar range r (1 + sound)
+SOURCES = ("laser_offset", "laser_scale", "sound")
+
+
 @dataclass(frozen=True)
 class OwnTime:
     """A sonar feature's measurement from the robot at the reading's own time ``t`` (s):
@@ -44,6 +49,7 @@ class OwnTime:
     t: float
     z: NDArray[np.float64]
     cov: NDArray[np.float64]
+    Jc: NDArray[np.float64] | None = field(default=None, repr=False)  # as Feature.Jc
 
 
 @dataclass
@@ -56,10 +62,11 @@ class Feature:
     and last point projected on the line, in scan order) and corners (the ends of both arms).
     ``support`` counts laser points and sonar readings; ``sources`` says which sensors
     measured z ("laser", "sonar" or "fused"). ``own``: a sonar-only point or plane feature's
-    measurement at the reading's own time (None for the others). ``Jc`` (len(z), 2): dz / d
-    (laser range offset in m, laser range scale in m per m), through the fit, the fusion
-    and the mount (None: no laser range in z); where the laser's calibration is estimated
-    (:mod:`fgslam.slam.calibration`) ``cov`` leaves out the fits' worst-case systematic term.
+    measurement at the reading's own time (None for the others). ``Jc`` (len(z), 3): dz / d
+    (:data:`SOURCES`: laser range offset in m, laser range scale in m per m, relative error
+    of the speed of sound), through the fit, the fusion and the mount (None: no range in z);
+    where the laser's calibration is estimated (:mod:`fgslam.slam.calibration`) ``cov``
+    leaves out the fits' worst-case systematic term.
     """
 
     kind: str

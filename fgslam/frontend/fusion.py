@@ -46,15 +46,24 @@ def fuse(
 
 
 def fused_jacobian(
-    C_l: ArrayLike, C_s: ArrayLike, J_l: ArrayLike, dims: int | None = None
+    C_l: ArrayLike,
+    C_s: ArrayLike,
+    J_l: ArrayLike,
+    dims: int | None = None,
+    J_s: ArrayLike | None = None,
 ) -> NDArray[np.float64]:
-    """The fused vector's Jacobian (I - K H) J_l w.r.t. what the laser estimate's Jacobian
-    ``J_l`` is taken against (e.g. the laser's range calibration, which the sonar does not
-    involve), with the gain of :func:`fuse` for the same covariances."""
+    """The fused vector's Jacobian J_l + K (J_s - H J_l) w.r.t. what the laser estimate's
+    Jacobian ``J_l`` and the sonar measurement's ``J_s`` (None: zero) are taken against
+    (e.g. the laser's range calibration, which the sonar does not involve, and the speed of
+    sound, which the laser does not), with the gain of :func:`fuse` for the same
+    covariances."""
     C_l = np.asarray(C_l, dtype=float)
     J_l = np.asarray(J_l, dtype=float)
     m = C_l.shape[0] if dims is None else dims
-    return J_l - _gain(C_l, np.asarray(C_s, dtype=float), m) @ J_l[:m]
+    K = _gain(C_l, np.asarray(C_s, dtype=float), m)
+    if J_s is None:
+        return J_l - K @ J_l[:m]
+    return J_l + K @ (np.asarray(J_s, dtype=float) - J_l[:m])
 
 
 def _gain(C_l: NDArray[np.float64], C_s: NDArray[np.float64], m: int) -> NDArray[np.float64]:

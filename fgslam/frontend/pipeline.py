@@ -27,7 +27,12 @@ from factors.corner import corner_to_world, predict_corner
 from factors.geometry import wrap_angle
 from factors.line import line_residual, line_to_world
 from factors.odometry import OdometryIntegrator
-from factors.point import bearing_range_to_robot_frame, point_to_world, predict_point
+from factors.point import (
+    bearing_range_in_frame,
+    bearing_range_to_robot_frame,
+    point_to_world,
+    predict_point,
+)
 from factors.sensor_models import (
     CORNER_ANGULAR,
     LINE_ANGULAR,
@@ -36,7 +41,7 @@ from factors.sensor_models import (
 )
 from fgslam.config import RobotConfig
 from fgslam.events import Event, LaserScan, OdometryEvent, SonarReading
-from fgslam.frontend.features import End, Feature, OwnTime, ScanFeatures
+from fgslam.frontend.features import SOURCES, End, Feature, OwnTime, ScanFeatures
 from fgslam.frontend.fits import FitRejected, corner_ranges, fit_corner, fit_line
 from fgslam.frontend.fusion import fuse, fused_jacobian
 from fgslam.frontend.segmentation import Segment, SegmentParams, segment_scan
@@ -347,7 +352,7 @@ class FrontEnd:
             seg.start,
             seg.end,
             laser_support=int(fit.used.sum()),
-            Jc=fit.source_jacobian,
+            Jc=_laser_sources(fit.source_jacobian),
         )
         if pts is not None and len(pts):
             f.sonar_support = int(np.sum(_seg_dist(pts.xy, f.endpoints) < self.p.support_dist))
@@ -421,7 +426,7 @@ class FrontEnd:
                 np.array([l1.endpoints[0], l2.endpoints[1]]),
                 convex=convex,
                 laser_support=int(fit.used.sum()),
-                Jc=fit.source_jacobian,
+                Jc=_laser_sources(fit.source_jacobian),
             )
             if pts is not None and len(pts):
                 vx, vy = (
@@ -454,7 +459,15 @@ class FrontEnd:
             z, cov = _plane(pts.mount[i], pts.bearing[i], pts.r[i], C)
         else:
             z, cov = bearing_range_to_robot_frame((pts.bearing[i], pts.r[i]), C, pts.mount[i])
-        return OwnTime(float(pts.t[i]), z, cov)
+        Jc = _sound_source(_echo_range_jacobian(kind, pts.mount[i], pts.bearing[i], pts.r[i]))
+        return OwnTime(float(pts.t[i]), z, cov, Jc)
+
+    @staticmethod
+    def _sound_jacobian(pts: SonarPoints, i: int) -> NDArray[np.float64]:
+        """Echo ``i``'s measurement in the laser frame at the scan's time (a plane's (alpha, d)
+        as ``pts.line[i]``, another's (bearing, range)) w.r.t. :data:`SOURCES`."""
+        kind = "line" if pts.kind[i] == 0 else "point"
+        return _sound_source(_echo_range_jacobian(kind, pts.sensor[i], pts.bearing[i], pts.r[i]))
 
     def _point_cov(self, pts: SonarPoints, i: int) -> NDArray[np.float64]:
         _, _, tth = pts.sensor[i]
@@ -480,7 +493,10 @@ class FrontEnd:
                         continue
                     zs = f.z + e  # the sonar line in the laser line's (alpha, d) form
                     if f.Jc is not None:
-                        f.Jc = fused_jacobian(f.cov, Cs, f.Jc)
+                        Js = self._sound_jacobian(pts, i)
+                        if abs(wrap_angle(zs[0] - pts.line[i, 0])) > math.pi / 2:
+                            Js = -Js  # that form is (alpha + pi, -d) of pts.line's
+                        f.Jc = fused_jacobian(f.cov, Cs, f.Jc, J_s=Js)
                     f.z, f.cov = fuse(f.z, f.cov, zs, Cs, angular=(True, False))
                     f.source = "fused"
                     used[i] = True
@@ -493,7 +509,8 @@ class FrontEnd:
                     if e @ np.linalg.solve(f.cov[:2, :2] + Cs, e) > CHI2_2_99:
                         continue
                     if f.Jc is not None:
-                        f.Jc = fused_jacobian(f.cov, Cs, f.Jc, dims=2)
+                        Js = self._sound_jacobian(pts, i)
+                        f.Jc = fused_jacobian(f.cov, Cs, f.Jc, dims=2, J_s=Js)
                     f.z, f.cov = fuse(f.z, f.cov, f.z[:2] + e, Cs, angular=(True, False), dims=2)
                     f.source = "fused"
                     used[i] = True
@@ -514,6 +531,7 @@ class FrontEnd:
             "sonar",
             sonar_support=int(c.members.size),
             own=self._own(pts, i, "point"),
+            Jc=self._sound_jacobian(pts, i),
         )
         f.sonar_readings = (pts.readings[int(pts.reading[i])],)
         return f
@@ -543,6 +561,7 @@ class FrontEnd:
                     "sonar",
                     sonar_support=1,
                     own=self._own(pts, i, "line"),
+                    Jc=self._sound_jacobian(pts, i),
                 )
             )
         return out
@@ -603,6 +622,33 @@ def _plane(
     alpha = wrap_angle(a + math.pi if d < 0 else a)
     J = np.array([[1.0, 0.0], [-tx * math.sin(alpha) + ty * math.cos(alpha), 1.0]])
     return np.array([alpha, abs(d)]), J @ C @ J.T
+
+
+def _echo_range_jacobian(
+    kind: str, sensor: NDArray[np.float64], bearing: float, r: float
+) -> NDArray[np.float64]:
+    """r dz/dr of a sonar echo (``bearing``, range ``r``) of a transducer at ``sensor`` = (x,
+    y, theta) as a ``line`` (plane: (alpha, d >= 0) as :func:`_plane`) or ``point`` ((bearing,
+    range)) in the frame ``sensor`` is given in: its Jacobian w.r.t. the relative error of the
+    speed of sound (a range reads r (1 + sound), to first order)."""
+    tx, ty, tth = (float(v) for v in sensor)
+    if kind == "line":
+        a = tth + bearing
+        d = r + tx * math.cos(a) + ty * math.sin(a)
+        return np.array([0.0, r if d >= 0 else -r])  # d < 0: the form (a + pi, -d)
+    return r * bearing_range_in_frame((bearing, r), (tx, ty, tth))[1][:, 1]
+
+
+def _sound_source(j: NDArray[np.float64]) -> NDArray[np.float64]:
+    """A Jacobian w.r.t. the speed of sound alone (len(z),) as one w.r.t. :data:`SOURCES`."""
+    out = np.zeros((len(j), len(SOURCES)))
+    out[:, SOURCES.index("sound")] = j
+    return out
+
+
+def _laser_sources(J: NDArray[np.float64]) -> NDArray[np.float64]:
+    """A laser fit's Jacobian w.r.t. its range (offset, scale) as one w.r.t. :data:`SOURCES`."""
+    return np.column_stack([J, np.zeros(len(J))])
 
 
 def _polar_cov(xy: NDArray[np.float64], C: NDArray[np.float64]) -> NDArray[np.float64]:

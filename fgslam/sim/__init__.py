@@ -9,7 +9,7 @@ from pathlib import Path
 from fgslam.config import RobotConfig
 from fgslam.logfile import LogWriter
 from fgslam.sim.sensors import SimParams
-from fgslam.sim.simulate import Run, events, plan_run
+from fgslam.sim.simulate import Run, events, plan_run, sound_speed_bias
 from fgslam.sim.world import World
 
 SIMULATOR_VERSION = 1
@@ -34,6 +34,7 @@ def simulate_to_log(
         "duration": run.duration,
         "distance": round(run.distance, 3),
         "sim_params": dataclasses.asdict(params),
+        "sound_speed_bias": sound_speed_bias(seed, params),
         "true_map": world.feature_map(),
     }
     with LogWriter(out, cfg, world.name, meta) as log:

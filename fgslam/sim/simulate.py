@@ -57,6 +57,17 @@ def _streams(seed: int) -> list[np.random.Generator]:
     return [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(4)]
 
 
+def _sound_bias(rng_sonar: np.random.Generator, params: SimParams) -> float:
+    """The run's relative speed-of-sound error: the sonar stream's first draw."""
+    return float(rng_sonar.normal(0.0, params.sound_speed_bias_sigma))
+
+
+def sound_speed_bias(seed: int, params: SimParams | None = None) -> float:
+    """The relative speed-of-sound error of the run of ``seed`` (every echo's range reads
+    r (1 + bias) before its random error), as :func:`events` draws it."""
+    return _sound_bias(_streams(seed)[3], params or SimParams())
+
+
 def plan_run(
     world: World,
     cfg: RobotConfig,
@@ -147,7 +158,7 @@ def events(
     """All sensor events of a planned run in time order (ties: odometry, truth, sonar, laser)."""
     params = params or SimParams()
     _, _, rng_laser, rng_sonar = _streams(run.seed)
-    sound_bias = float(rng_sonar.normal(0.0, params.sound_speed_bias_sigma))
+    sound_bias = _sound_bias(rng_sonar, params)
     end = run.duration
 
     def odometry() -> Iterator[tuple[float, int, int, Event]]:

@@ -10,6 +10,7 @@ from numpy.typing import NDArray
 
 from factors.odometry import Preintegrated
 from fgslam.frontend.features import Feature
+from fgslam.slam.calibration import Calibration
 
 # landmark means by id, and the joint covariance of [pose, those landmarks] in world
 # coordinates (pose x, y, theta first; then each landmark's parameters in the order given)
@@ -24,6 +25,7 @@ class Backend(ABC):
     (smoothed, for graphs) trajectory."""
 
     name = "backend"
+    cal: Calibration | None = None  # the calibration errors estimated (None: none)
 
     def __init__(self) -> None:
         self.trajectory: list[tuple[float, NDArray[np.float64], NDArray[np.float64]]] = []
@@ -76,20 +78,26 @@ class Backend(ABC):
         covariance (None: not known), or None when the backend does not estimate them."""
         return None
 
-    def laser_calibration_cov(self) -> NDArray[np.float64] | None:
-        """The current marginal covariance of the laser's estimated range errors (offset, and
-        scale if estimated: 1x1 or 2x2), or None when they are not estimated."""
+    def measured_calibration_cov(self) -> NDArray[np.float64] | None:
+        """The current marginal covariance of the calibration errors that features'
+        measurements involve (c at :attr:`Calibration.measured_index`: the laser's range
+        errors, the speed of sound), or None when none is estimated."""
         return None
 
+    def _cal_jacobian(self, f: Feature) -> NDArray[np.float64] | None:
+        """``f``'s dz/dc (None: it involves no estimated calibration error)."""
+        return None if self.cal is None else self.cal.measurement_jacobian(f.Jc)
+
     def for_association(self, f: Feature) -> Feature:
-        """``f`` as association and the tentative map should weigh it: where the laser's range
-        errors are estimated (its ``cov`` then random only), with their uncertainty added,
-        Jc S Jc^T (S their current marginal; conservative: the landmarks' correlation with
-        them, which would cancel part of it, is left out)."""
-        S = self.laser_calibration_cov()
-        if S is None or f.Jc is None:
+        """``f`` as association and the tentative map should weigh it: where the range errors
+        it involves are estimated (its ``cov`` then random only), with their uncertainty
+        added, J S J^T (S their current marginal; conservative: the landmarks' correlation
+        with them, which would cancel part of it, is left out)."""
+        J = self._cal_jacobian(f)
+        S = None if J is None else self.measured_calibration_cov()
+        if S is None:
             return f
-        J = f.Jc[:, : len(S)]  # the columns of the parts estimated (offset first)
+        J = J[:, self.cal.measured_index]
         return dataclasses.replace(f, cov=f.cov + J @ S @ J.T)
 
     def keyframe_poses(self) -> NDArray[np.float64]:

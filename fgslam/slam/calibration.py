@@ -1,10 +1,12 @@
 """The calibration errors estimated with the map (DESIGN 6): one vector c, the graph's variable
-``C`` and the EKF's states 3:3+dim, holding the wheels' relative errors (e_r, e_l, e_b) and/or
+``C`` and the EKF's states 3:3+dim, holding the wheels' relative errors (e_r, e_l, e_b),
 the laser's range errors (offset in m, scale in m per m: a range reads r (1 + scale) +
-offset). Odometry moves with the wheel part through the preintegration's Jacobian; a line or
-corner measurement reads z = h(pose, landmark) + Jc c_laser + noise (:attr:`Feature.Jc`), its
-covariance then holding the random errors only. The layout is the one rule both backends
-follow for where each part sits in c."""
+offset) and the sonar's relative speed-of-sound error (``sound``: an echo's range reads
+r (1 + sound)), each part when estimated. Odometry moves with the wheel part through the
+preintegration's Jacobian; a feature's measurement reads z = h(pose, landmark) + J c + noise,
+J its Jacobian w.r.t. the range error sources (:attr:`Feature.Jc`, columns
+:data:`SOURCES`) placed in c's columns, its covariance then holding the random errors only.
+The layout is the one rule both backends follow for where each part sits in c."""
 
 from __future__ import annotations
 
@@ -14,27 +16,36 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.linalg import block_diag
 
+from fgslam.frontend.features import SOURCES
+
 WHEEL_NAMES = ("e_r", "e_l", "e_b")
-LASER_NAMES = ("laser_offset", "laser_scale")  # the first one or both
+LASER_NAMES = SOURCES[:2]  # the first one or both
+SOUND_NAMES = SOURCES[2:]
 
 
 @dataclass(frozen=True)
 class Calibration:
-    """Which calibration errors c holds (``wheels``, ``laser``: their slices of c, None when
-    not estimated), their names and their prior covariance (zero mean)."""
+    """Which calibration errors c holds (``wheels``, ``laser``, ``sound``: their slices of c,
+    None when not estimated), their names and their prior covariance (zero mean)."""
 
     prior: NDArray[np.float64]
     names: tuple[str, ...]
     wheels: slice | None
     laser: slice | None
+    sound: slice | None = None
 
     @staticmethod
-    def of(wheels: ArrayLike | None = None, laser: ArrayLike | None = None) -> Calibration | None:
+    def of(
+        wheels: ArrayLike | None = None,
+        laser: ArrayLike | None = None,
+        sound: ArrayLike | None = None,
+    ) -> Calibration | None:
         """c of the parts whose prior covariance is given (wheels 3x3, then the laser's 1x1
-        offset or 2x2 offset and scale); None when neither is."""
+        offset or 2x2 offset and scale, then the sound's 1x1); None when none is."""
         blocks, names = [], ()
-        sl: dict[str, slice | None] = {"wheels": None, "laser": None}
-        for part, cov, n in (("wheels", wheels, WHEEL_NAMES), ("laser", laser, LASER_NAMES)):
+        sl: dict[str, slice | None] = {"wheels": None, "laser": None, "sound": None}
+        parts = (("wheels", wheels, WHEEL_NAMES), ("laser", laser, LASER_NAMES))
+        for part, cov, n in (*parts, ("sound", sound, SOUND_NAMES)):
             if cov is None:
                 continue
             cov = np.atleast_2d(np.asarray(cov, dtype=float))
@@ -47,27 +58,35 @@ class Calibration:
             names = names + n
         if not blocks:
             return None
-        return Calibration(block_diag(*blocks), names, sl["wheels"], sl["laser"])
+        return Calibration(block_diag(*blocks), names, sl["wheels"], sl["laser"], sl["sound"])
 
     @staticmethod
     def from_config(cfg) -> Calibration | None:
         """The calibration a :class:`fgslam.config.RobotConfig` asks to estimate."""
-        return Calibration.of(cfg.odometry.calibration_prior(), cfg.laser.calibration_prior())
+        return Calibration.of(
+            cfg.odometry.calibration_prior(),
+            cfg.laser.calibration_prior(),
+            cfg.sonar.calibration_prior(),
+        )
 
     @property
     def dim(self) -> int:
         return len(self.names)
 
+    @property
+    def measured(self) -> bool:
+        """Whether c holds a part that features' measurements involve (laser or sound)."""
+        return self.laser is not None or self.sound is not None
+
+    @property
+    def measured_index(self) -> NDArray[np.intp]:
+        """The indices in c of the parts that features' measurements involve."""
+        parts = [sl for sl in (self.laser, self.sound) if sl is not None]
+        return np.concatenate([np.arange(sl.start, sl.stop) for sl in parts]).astype(np.intp)
+
     def wheel_jacobian(self, J: NDArray[np.float64]) -> NDArray[np.float64]:
         """A Jacobian w.r.t. (e_r, e_l, e_b) (rows x 3) as one w.r.t. c (zero elsewhere)."""
         return self._embed(J, self.wheels)
-
-    def laser_jacobian(self, J: NDArray[np.float64]) -> NDArray[np.float64]:
-        """A Jacobian w.r.t. the laser's (offset, scale) (rows x 2) as one w.r.t. c (the
-        columns of the parts estimated)."""
-        if self.laser is None:
-            raise ValueError("the laser's range errors are not estimated")
-        return self._embed(J[:, : self.laser.stop - self.laser.start], self.laser)
 
     def _embed(self, J: NDArray[np.float64], sl: slice | None) -> NDArray[np.float64]:
         if sl is None:
@@ -77,10 +96,18 @@ class Calibration:
         return out
 
     def measurement_jacobian(self, Jc: NDArray[np.float64] | None) -> NDArray[np.float64] | None:
-        """A feature's dz/dc (None: its measurement does not involve c)."""
-        if self.laser is None or Jc is None:
+        """A feature's dz/dc from its Jacobian w.r.t. the sources (``Jc``: len(z) x
+        len(:data:`SOURCES`)), or None where its measurement involves no estimated part
+        (then its factor and update stay those without calibration)."""
+        if Jc is None or not self.measured:
             return None
-        return self.laser_jacobian(np.asarray(Jc, dtype=float))
+        Jc = np.asarray(Jc, dtype=float)
+        out = np.zeros((Jc.shape[0], self.dim))
+        if self.laser is not None:
+            out[:, self.laser] = Jc[:, : self.laser.stop - self.laser.start]
+        if self.sound is not None:
+            out[:, self.sound] = Jc[:, len(LASER_NAMES) :]
+        return out if out.any() else None
 
 
 def as_calibration(value: Calibration | ArrayLike | None) -> Calibration | None:

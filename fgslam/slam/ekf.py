@@ -36,7 +36,8 @@ class EkfBackend(Backend):
     the pose: the wheel part predicted through the wheel odometry's Jacobian w.r.t. it (a
     link fused with a scan match through the fusion's Jacobian,
     :func:`factors.odometry.fuse_motions`; a scan match alone does not involve it), the
-    laser part in every line and corner update (:attr:`Feature.Jc`); None: off."""
+    laser and sound parts in every update of a feature that involves them (:attr:`Feature.Jc`);
+    None: off."""
 
     name = "ekf"
     supports_loops = False  # a filter keeps no past pose to close a loop on
@@ -174,14 +175,11 @@ class EkfBackend(Backend):
             ang.extend(o + i for i, a in enumerate(models.ANGULAR[kind]) if a)
         self._angles = np.array(sorted(ang), dtype=np.intp)
 
-    def _cal_jacobian(self, f: Feature) -> NDArray[np.float64] | None:
-        return None if self.cal is None else self.cal.measurement_jacobian(f.Jc)
-
-    def laser_calibration_cov(self) -> NDArray[np.float64] | None:
-        if self.cal is None or self.cal.laser is None:
+    def measured_calibration_cov(self) -> NDArray[np.float64] | None:
+        if self.cal is None or not self.cal.measured:
             return None
-        sl = slice(3 + self.cal.laser.start, 3 + self.cal.laser.stop)
-        return self.P[sl, sl].copy()
+        idx = 3 + self.cal.measured_index
+        return self.P[np.ix_(idx, idx)]
 
     def observe(self, lid: int, f: Feature) -> None:
         o, kind = self.index[lid]

@@ -87,8 +87,9 @@ class GraphBackend(Backend):
     ``calibration``: the calibration errors to estimate (:class:`Calibration`, or the 3x3
     prior covariance of the wheel errors (e_r, e_l, e_b) alone), one variable ``C`` of the
     graph: its wheel part in every wheel odometry factor
-    (:func:`factors.odometry.calibrated_odometry_factor`), its laser part in every line and
-    corner factor (:attr:`Feature.Jc`); None: the nominal calibration is taken as exact.
+    (:func:`factors.odometry.calibrated_odometry_factor`), its laser and sound parts in every
+    factor of a feature that involves them (:attr:`Feature.Jc`); None: the nominal
+    calibration is taken as exact.
     :meth:`calibration_estimate` reads it.
     """
 
@@ -335,18 +336,17 @@ class GraphBackend(Backend):
                 s = (own.t - ta) / (tb - ta)
                 if self.OWN_TIME_REACH[0] <= s <= self.OWN_TIME_REACH[1]:
                     self.stats["sonar_own_time"] += 1
+                    J = None if self.cal is None else self.cal.measurement_jacobian(own.Jc)
                     return models.own_time_factor(
-                        kind, X(self.k - 1), X(self.k), L(lid), s, own, self.robust
+                        kind, X(self.k - 1), X(self.k), L(lid), s, own, self.robust, C, J
                     )
         return models.factor(kind, X(self.k), L(lid), f, self.robust, C, self._cal_jacobian(f))
 
-    def _cal_jacobian(self, f: Feature) -> NDArray[np.float64] | None:
-        return None if self.cal is None else self.cal.measurement_jacobian(f.Jc)
-
-    def laser_calibration_cov(self) -> NDArray[np.float64] | None:
-        if self.cal is None or self.cal.laser is None or self._c_cov is None:
+    def measured_calibration_cov(self) -> NDArray[np.float64] | None:
+        if self.cal is None or not self.cal.measured or self._c_cov is None:
             return None
-        return self._c_cov[self.cal.laser, self.cal.laser].copy()
+        idx = self.cal.measured_index
+        return self._c_cov[np.ix_(idx, idx)]
 
     def merge(self, keep: int, drop: int) -> None:
         """A robust tie (sigma ``merge_sigma``) between two variables of one landmark."""
@@ -393,7 +393,7 @@ class GraphBackend(Backend):
         self._pose_pred = np.array([p.x(), p.y(), p.theta()])
         if self.cal is not None:
             self._c = np.asarray(self.isam.calculateEstimateVector(C), dtype=float)
-            if self.cal.laser is not None:  # for association (for_association)
+            if self.cal.measured:  # for association (for_association)
                 self._c_cov = self.isam.marginalCovariance(C)
         self.trajectory.append((self._pending_t, self._pose_pred.copy(), None))
 

@@ -262,15 +262,13 @@ def factor(
     """The GTSAM factor of a feature measured from pose ``pose_key`` of landmark ``lm_key``,
     its noise robust with the kernel ``robust`` (:func:`m_estimator`); with a
     ``cal_jacobian`` (dz/dc, :class:`fgslam.slam.calibration.Calibration`) also of the
-    calibration variable ``cal_key`` (lines and corners)."""
+    calibration variable ``cal_key``."""
     if cal_jacobian is None:
         cal_key = None
-    if kind == "point":
-        if cal_key is not None:
-            raise ValueError("point measurements carry no calibration Jacobian")
-        return point_factor(pose_key, lm_key, f.z, f.cov, robust=m_estimator(robust, 2))
-    noise = noise_model(f.cov, robust)
     cal = {"cal_key": cal_key, "cal_jacobian": cal_jacobian}
+    if kind == "point":
+        return point_factor(pose_key, lm_key, f.z, f.cov, robust=m_estimator(robust, 2), **cal)
+    noise = noise_model(f.cov, robust)
     if kind == "line":
         return line_factor(pose_key, lm_key, f.z, noise, **cal)
     if len(f.z) == 2:
@@ -289,14 +287,21 @@ def own_time_factor(
     s: float,
     own: OwnTime,
     robust: str = "none",
+    cal_key: int | None = None,
+    cal_jacobian: NDArray[np.float64] | None = None,
 ) -> gtsam.NonlinearFactor:
     """The factor of a sonar point or plane measured at its own time (``own``, robot frame
     then) from the pose at fraction ``s`` between keyframe poses ``key_a`` and ``key_b``
-    (:func:`factors.own_time.interpolated_factor`), robust with ``robust``."""
+    (:func:`factors.own_time.interpolated_factor`), robust with ``robust``; with a
+    ``cal_jacobian`` (dz/dc of ``own``) also of the calibration variable ``cal_key``."""
     if kind not in OWN_TIME_KINDS:
         raise ValueError(f"no own-time factor for {kind!r} landmarks")
     noise = noise_model(own.cov, robust)
-    return interpolated_factor(OWN_TIME_KINDS[kind], key_a, key_b, lm_key, s, own.z, noise)
+    if cal_jacobian is None:
+        cal_key = None
+    return interpolated_factor(
+        OWN_TIME_KINDS[kind], key_a, key_b, lm_key, s, own.z, noise, cal_key, cal_jacobian
+    )
 
 
 def value(kind: str, lm: NDArray[np.float64]) -> object:
