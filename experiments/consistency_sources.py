@@ -9,7 +9,8 @@ normalised error per component (x, y, heading; 1 when consistent) and the share 
 every calibration estimate within 3 sigma of the truth.
 
 Run: python experiments/consistency_sources.py [--seeds 3] [--duration 200] [--workers 1]
-[--json consistency_sources.json]
+[--sensors fused|laser] [--backends ekf isam2] [--laser-calibration off|offset|range]
+[--sonar-calibration off|sound] [--cases NAME ...] [--json consistency_sources.json]
 """
 
 from __future__ import annotations
@@ -23,9 +24,10 @@ from pathlib import Path
 import numpy as np
 
 from fgslam import evaluation
-from fgslam.config import load_config, with_scanmatch
+from fgslam.choices import LASER_CALIBRATION_CHOICES, SONAR_CALIBRATION_CHOICES
+from fgslam.config import load_config, with_options, with_scanmatch
 from fgslam.sim.sensors import SimParams
-from fgslam.sim.simulate import events, plan_run
+from fgslam.sim.simulate import events, plan_run, sound_speed_bias
 from fgslam.sim.world import load_world
 from fgslam.slam.runner import run_backends
 
@@ -34,18 +36,27 @@ PAPER = {"odometry": "wheels", "keyframes": "every-scan", "loop_closures": "off"
 NO_SCALE = {"laser_sys_per_metre": 0.0}
 NO_LASER = {**NO_SCALE, "laser_sys_offset": 0.0, "mixed_pixel_prob": 0.0}
 NO_WHEELS = {"radius_error_right": 0.0, "radius_error_left": 0.0, "wheelbase_error": 0.0}
+# name: (what the simulator leaves out, its overrides)
 CASES = {
-    "as simulated": {},
-    "no mixed pixels": {"mixed_pixel_prob": 0.0},
-    "no laser range scale": NO_SCALE,
-    "no laser systematic error (scale, offset, mixed pixels)": NO_LASER,
-    "no laser systematic error, exact wheels": {**NO_LASER, **NO_WHEELS},
+    "all": ("as simulated", {}),
+    "no-mixed": ("no mixed pixels", {"mixed_pixel_prob": 0.0}),
+    "no-scale": ("no laser range scale", NO_SCALE),
+    "no-laser": ("no laser systematic error (scale, offset, mixed pixels)", NO_LASER),
+    "no-laser-wheels": ("no laser systematic error, exact wheels", {**NO_LASER, **NO_WHEELS}),
 }
 
 
-def one(case: str, seed: int, duration: float, sensors: str, backends: tuple[str, ...]) -> list:
-    """One simulated run of ``case`` and every backend on it: a row each."""
-    sim = dataclasses.replace(SimParams(), **CASES[case])
+def one(
+    case: str,
+    seed: int,
+    duration: float,
+    sensors: str,
+    backends: tuple[str, ...],
+    options: dict | None = None,
+) -> list:
+    """One simulated run of ``case`` and every backend on it (the configuration with
+    ``options``, by section): a row each."""
+    sim = dataclasses.replace(SimParams(), **CASES[case][1])
     cfg = load_config()
     world = load_world("corridor")
     evs = list(events(world, cfg, plan_run(world, cfg, seed, sim, duration), sim))
@@ -55,9 +66,11 @@ def one(case: str, seed: int, duration: float, sensors: str, backends: tuple[str
         "e_b": sim.wheelbase_error,
         "laser_offset": sim.laser_sys_offset,
         "laser_scale": sim.laser_sys_per_metre,
+        "sound": sound_speed_bias(seed, sim),
     }
     rows = []
-    for res in run_backends(evs, with_scanmatch(cfg, PAPER), list(backends), sensors):
+    cfg = with_options(with_scanmatch(cfg, PAPER), options)
+    for res in run_backends(evs, cfg, list(backends), sensors):
         ref = evaluation.interpolate_poses(res.truth_t, res.truth, res.times)
         covs = np.array(res.covs)
         e = res.poses - ref
@@ -98,7 +111,7 @@ def summarise(rows: list[dict]) -> str:
             z2 = np.mean([r["z2"] for r in rs], axis=0)
             inside = np.mean([r["within_3_sigma"] for r in rs])
             out.append(
-                f"| {case} | {backend} | {ate:.1f} | {nees:.1f} | {band:.0%} | "
+                f"| {CASES[case][0]} | {backend} | {ate:.1f} | {nees:.1f} | {band:.0%} | "
                 f"{', '.join(f'{v:.1f}' for v in z2)} | {inside:.0%} |"
             )
     seeds = sorted({r["seed"] for r in rows})
@@ -116,13 +129,30 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--sensors", default="fused", choices=["fused", "laser"])
     ap.add_argument("--backends", nargs="+", default=["ekf", "isam2"])
+    ap.add_argument(
+        "--laser-calibration",
+        choices=LASER_CALIBRATION_CHOICES,
+        help="the laser's range errors estimated (default: the configuration's, offset)",
+    )
+    ap.add_argument(
+        "--sonar-calibration",
+        choices=SONAR_CALIBRATION_CHOICES,
+        help="the speed of sound estimated (default: the configuration's, off)",
+    )
+    ap.add_argument(
+        "--cases", nargs="+", choices=list(CASES), default=list(CASES), help="(default: all)"
+    )
     ap.add_argument("--json", default="consistency_sources.json", help="name in experiments/out")
     args = ap.parse_args()
-    jobs = [(c, s) for c in CASES for s in range(args.seeds)]
+    options = {
+        "laser": {"calibration": args.laser_calibration},
+        "sonar": {"calibration": args.sonar_calibration},
+    }
+    jobs = [(c, s) for c in args.cases for s in range(args.seeds)]
     rows: list[dict] = []
     with ProcessPoolExecutor(max_workers=args.workers) as pool:
         futures = [
-            pool.submit(one, c, s, args.duration, args.sensors, tuple(args.backends))
+            pool.submit(one, c, s, args.duration, args.sensors, tuple(args.backends), options)
             for c, s in jobs
         ]
         for k, (fut, (case, seed)) in enumerate(zip(futures, jobs, strict=True), 1):
