@@ -10,7 +10,7 @@ every calibration estimate within 3 sigma of the truth.
 
 Run: python experiments/consistency_sources.py [--seeds 3] [--duration 200] [--workers 1]
 [--sensors fused|laser] [--backends ekf isam2] [--laser-calibration off|offset|range]
-[--sonar-calibration off|sound] [--cases NAME ...] [--json consistency_sources.json]
+[--sonar-calibration off|sound] [--corners with-lines|replace-lines|off] [--cases NAME ...] [--json consistency_sources.json]
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from fgslam import evaluation
-from fgslam.choices import LASER_CALIBRATION_CHOICES, SONAR_CALIBRATION_CHOICES
+from fgslam.choices import CORNER_CHOICES, LASER_CALIBRATION_CHOICES, SONAR_CALIBRATION_CHOICES
 from fgslam.config import load_config, with_options, with_scanmatch
 from fgslam.sim.sensors import SimParams
 from fgslam.sim.simulate import events, plan_run, sound_speed_bias
@@ -140,6 +140,12 @@ def main() -> None:
         help="the speed of sound estimated (default: the configuration's, off)",
     )
     ap.add_argument(
+        "--corners",
+        choices=CORNER_CHOICES,
+        help="a corner's two lines kept too, dropped, or no corners (default: the "
+        "configuration's, with-lines)",
+    )
+    ap.add_argument(
         "--cases", nargs="+", choices=list(CASES), default=list(CASES), help="(default: all)"
     )
     ap.add_argument("--json", default="consistency_sources.json", help="name in experiments/out")
@@ -147,6 +153,7 @@ def main() -> None:
     options = {
         "laser": {"calibration": args.laser_calibration},
         "sonar": {"calibration": args.sonar_calibration},
+        "frontend": {"corners": args.corners},
     }
     jobs = [(c, s) for c in args.cases for s in range(args.seeds)]
     rows: list[dict] = []
