@@ -10,7 +10,8 @@ every calibration estimate within 3 sigma of the truth.
 
 Run: python experiments/consistency_sources.py [--seeds 3] [--duration 200] [--workers 1]
 [--sensors fused|laser] [--backends ekf isam2] [--laser-calibration off|offset|range]
-[--sonar-calibration off|sound] [--corners with-lines|replace-lines|off] [--cases NAME ...] [--json consistency_sources.json]
+[--sonar-calibration off|sound] [--corners with-lines|replace-lines|off] [--cases NAME ...]
+[--json consistency_sources.json]
 """
 
 from __future__ import annotations
