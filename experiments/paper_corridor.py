@@ -203,9 +203,11 @@ def summarise(rows: list[dict]) -> str:
 
 
 def plot(rows: list[dict], path: Path) -> None:
-    fig, axs = plt.subplots(1, 3, figsize=(15, 4.5), sharey=True)
+    present = [s for s in SENSORS if any(r["sensors"] == s for r in rows)]  # a panel each
+    fig, axs = plt.subplots(1, len(present), figsize=(5 * len(present), 4.5), sharey=True)
+    axs = np.atleast_1d(axs)
     colors = {"ekf": "tab:red", "isam2": "tab:blue", "batch": "tab:green"}
-    for ax, sensors in zip(axs, SENSORS, strict=True):
+    for ax, sensors in zip(axs, present, strict=True):
         for r in rows:
             if r["sensors"] != sensors:
                 continue
