@@ -77,7 +77,7 @@ def one(
         e = res.poses - ref
         e[:, 2] = (e[:, 2] + np.pi) % (2 * np.pi) - np.pi
         z2 = e**2 / np.einsum("nii->ni", covs)
-        scaled, k = _scale_aligned(res.poses, ref)
+        scaled, k = evaluation.scale_about_start(res.poses, ref)
         cal = res.calibration
         est, sig = np.array(cal["estimate"]), np.array(cal["sigma"])
         tru = np.array([truth[n] for n in cal["parameters"]])
@@ -96,17 +96,6 @@ def one(
             }
         )
     return rows
-
-
-def _scale_aligned(poses: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, float]:
-    """The trajectory scaled about its first (anchored) position by the least-squares factor
-    k that best matches the reference's positions (headings kept), and k: what is left once
-    the map's absolute scale, which wheels and a range sensor cannot observe, is taken out."""
-    p, q = poses[:, :2] - poses[0, :2], ref[:, :2] - ref[0, :2]
-    k = float(np.sum(p * q) / np.sum(p * p))
-    out = poses.copy()
-    out[:, :2] = poses[0, :2] + k * p
-    return out, k
 
 
 def summarise(rows: list[dict]) -> str:

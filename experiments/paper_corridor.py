@@ -117,6 +117,10 @@ def one_seed(
                     rep["calibration"]["truth"] = [truth[n] for n in names]
                 ref = evaluation.interpolate_poses(res.truth_t, res.truth, res.times)
                 err = evaluation.position_errors(res.poses, ref, align=False)
+                if "nees" in rep:  # and with the map's absolute scale taken out
+                    scaled, k = evaluation.scale_about_start(res.poses, ref)
+                    rep["scale_error"] = k - 1.0
+                    rep["nees_scale_aligned"] = evaluation.nees(scaled, np.array(res.covs), ref)
                 rep["error_curve"] = [res.times.tolist()[::10], err.tolist()[::10]]
                 rows.append(rep)
         return rows
@@ -179,6 +183,23 @@ def summarise(rows: list[dict]) -> str:
                 f"{', '.join(f'{v:.2f}' for v in np.nanmean(sig, 0))} | "
                 f"{', '.join(f'{v:.1f}' for v in tru.mean(0))} | {inside:.0%} | "
                 f"{', '.join(f'{v:.0%}' for v in each.mean(0))} |"
+            )
+    aligned = [r for r in rows if "nees_scale_aligned" in r]
+    if aligned:
+        out += [
+            "\nThe NEES with the map's absolute scale taken out (positions scaled about the "
+            "anchored first pose by the least-squares factor k onto the truth's; scale error "
+            "k - 1, mean +- std over seeds; NEES and band as above):\n",
+            "| backend | sensors | scale error (1e-3) | NEES (3 dof) | NEES in 95 % band |",
+            "|---|---|---|---|---|",
+        ]
+        for sensors, backend, rs in _groups(aligned):
+            sc = 1e3 * np.array([r["scale_error"] for r in rs])
+            ne = [r["nees_scale_aligned"]["mean"] for r in rs]
+            band = [r["nees_scale_aligned"]["within_95"] for r in rs]
+            out.append(
+                f"| {backend} | {sensors} | {sc.mean():+.2f} +- {sc.std():.2f} | "
+                f"{np.median(ne):.1f} | {np.mean(band):.0%} |"
             )
     out += [
         "\nMap error against the true map (cm; mean over seeds of each run's median error of its "

@@ -80,6 +80,20 @@ def position_errors(est: ArrayLike, ref: ArrayLike, align: bool = True) -> NDArr
     return np.hypot(est[:, 0] - ref[:, 0], est[:, 1] - ref[:, 1])
 
 
+def scale_about_start(est: ArrayLike, ref: ArrayLike) -> tuple[NDArray[np.float64], float]:
+    """The estimate's positions scaled about its first one (anchored) by the least-squares
+    factor k that best takes them onto the reference's (headings kept), and k. What remains
+    once a map's absolute scale, which wheels and range sensors with unknown scale errors
+    cannot tell, is taken out (m, rad)."""
+    est = np.array(est, dtype=float)
+    ref = np.asarray(ref, dtype=float)
+    p, q = est[:, :2] - est[0, :2], ref[:, :2] - ref[0, :2]
+    pp = float(np.sum(p * p))
+    k = float(np.sum(p * q) / pp) if pp > 0 else 1.0
+    est[:, :2] = est[0, :2] + k * p
+    return est, k
+
+
 def nees(est: ArrayLike, cov: ArrayLike, ref: ArrayLike) -> dict[str, float]:
     """Pose NEES e^T P^-1 e (e = estimate - reference, heading wrapped; 3 dof): its mean and
     the fraction of poses inside the two-sided 95 % chi-square interval."""

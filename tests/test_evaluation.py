@@ -83,6 +83,26 @@ def test_nees_hand_computed():
     assert n["within_95"] == pytest.approx(0.5)
 
 
+def test_scale_about_start_takes_out_a_map_scale():
+    """A trajectory scaled by 1.004 about its first pose (headings unchanged) plus small
+    noise: the factor found is 1 / 1.004 to the noise, the scaled copy is back on the
+    reference, headings and the first pose untouched; a hand case: (0,0), (2,0), (0,2)
+    against (0,0), (1,0), (0,1) gives k = 0.5."""
+    rng = np.random.default_rng(2)
+    ref = np.column_stack([rng.uniform(-20, 20, (50, 2)), rng.uniform(-3, 3, 50)])
+    ref[0] = (1.0, -2.0, 0.3)
+    est = ref.copy()
+    est[:, :2] = ref[0, :2] + 1.004 * (ref[:, :2] - ref[0, :2]) + rng.normal(0, 1e-4, (50, 2))
+    est[0] = ref[0]
+    scaled, k = ev.scale_about_start(est, ref)
+    assert k == pytest.approx(1 / 1.004, abs=2e-6)
+    np.testing.assert_allclose(scaled[:, :2], ref[:, :2], atol=5e-4)
+    np.testing.assert_array_equal(scaled[:, 2], est[:, 2])
+    np.testing.assert_array_equal(scaled[0], est[0])
+    hand = np.array([[0.0, 0, 0], [2, 0, 0], [0, 2, 0]])
+    assert ev.scale_about_start(hand, hand / [2, 2, 1])[1] == pytest.approx(0.5)
+
+
 def test_match_times_interpolates_and_drops_outside():
     t_ref = np.array([0.0, 1.0, 2.0])
     ref = np.array([[0, 0, 0], [1, 0, 0], [1, 1, math.pi / 2]], dtype=float)
