@@ -407,6 +407,14 @@ def _print_summary(rep: dict, out: str) -> None:
             f"odometry alone {rep['ate_odometry']['rmse']:.3f} m)"
         )
     print(msg)
+    cal = rep.get("calibration")
+    if cal:  # relative errors in 1e-3, the laser offset in mm
+        sig = cal.get("sigma") or [None] * len(cal["parameters"])
+        cells = [
+            f"{n} {1e3 * v:+.2f}" + ("" if s is None else f" +- {1e3 * s:.2f}")
+            for n, v, s in zip(cal["parameters"], cal["estimate"], sig, strict=True)
+        ]
+        print(f"calibration (1e-3; laser_offset in mm): {', '.join(cells)}")
     print(f"wrote {out}/trajectory.tum, map.json, report.json, map.png")
 
 

@@ -99,10 +99,15 @@ def test_run_calibration_option(short_log, tmp_path, capsys):
     both off, no calibration entry."""
     out, plain = tmp_path / "cal", tmp_path / "plain"
     args = ["run", str(short_log), "--backend", "isam2", "--sensors", "fused"]
+    capsys.readouterr()
     assert main([*args, "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
     off = ["--calibration", "off", "--laser-calibration", "off"]
     assert main([*args, *off, "--out", str(plain)]) == 0
+    assert "calibration (" not in capsys.readouterr().out
     cal = json.loads((out / "report.json").read_text())["calibration"]
+    e_r = f"e_r {1e3 * cal['estimate'][0]:+.2f} +- {1e3 * cal['sigma'][0]:.2f}"
+    assert f"calibration (1e-3; laser_offset in mm): {e_r}, e_l" in printed
     assert cal["parameters"] == ["e_r", "e_l", "e_b", "laser_offset"]
     est, sig = cal["estimate"][:3], cal["sigma"][:3]
     assert all(s < 0.01 for s in sig[:2]) and all(s <= 0.01 for s in sig)
