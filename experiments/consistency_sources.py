@@ -28,7 +28,7 @@ from fgslam import evaluation
 from fgslam.choices import CORNER_CHOICES, LASER_CALIBRATION_CHOICES, SONAR_CALIBRATION_CHOICES
 from fgslam.config import load_config, with_options, with_scanmatch
 from fgslam.sim.sensors import SimParams
-from fgslam.sim.simulate import events, plan_run, sound_speed_bias
+from fgslam.sim.simulate import calibration_truth, events, plan_run
 from fgslam.sim.world import load_world
 from fgslam.slam.runner import run_backends
 
@@ -61,14 +61,7 @@ def one(
     cfg = load_config()
     world = load_world("corridor")
     evs = list(events(world, cfg, plan_run(world, cfg, seed, sim, duration), sim))
-    truth = {
-        "e_r": sim.radius_error_right,
-        "e_l": sim.radius_error_left,
-        "e_b": sim.wheelbase_error,
-        "laser_offset": sim.laser_sys_offset,
-        "laser_scale": sim.laser_sys_per_metre,
-        "sound": sound_speed_bias(seed, sim),
-    }
+    truth = calibration_truth(seed, sim)
     rows = []
     cfg = with_options(with_scanmatch(cfg, PAPER), options)
     for res in run_backends(evs, cfg, list(backends), sensors):

@@ -50,6 +50,7 @@ from fgslam.config import load_config, with_options
 from fgslam.logfile import LogReader
 from fgslam.sim import simulate_to_log
 from fgslam.sim.sensors import SimParams
+from fgslam.sim.simulate import calibration_truth
 from fgslam.sim.world import load_world
 from fgslam.slam.outputs import report_dict
 from fgslam.slam.runner import BACKENDS, SENSORS, run_backends
@@ -95,15 +96,7 @@ def one_seed(
                 "sonar": {"timing": sonar_timing, "calibration": sonar_calibration},
             },
         )
-        sim = reader.meta["sim_params"]
-        truth = {
-            "e_r": sim["radius_error_right"],
-            "e_l": sim["radius_error_left"],
-            "e_b": sim["wheelbase_error"],
-            "laser_offset": sim["laser_sys_offset"],
-            "laser_scale": sim["laser_sys_per_metre"],
-            "sound": reader.meta["sound_speed_bias"],
-        }
+        truth = calibration_truth(seed, SimParams(**reader.meta["sim_params"]))
         for sensors in sensors_list:
             for res in run_backends(
                 LogReader(log), cfg, list(BACKENDS), sensors, association=association

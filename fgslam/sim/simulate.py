@@ -68,6 +68,20 @@ def sound_speed_bias(seed: int, params: SimParams | None = None) -> float:
     return _sound_bias(_streams(seed)[3], params or SimParams())
 
 
+def calibration_truth(seed: int, params: SimParams | None = None) -> dict[str, float]:
+    """The run's true calibration errors by the names of
+    :class:`fgslam.slam.calibration.Calibration` (relative; the laser offset in m)."""
+    params = params or SimParams()
+    return {
+        "e_r": params.radius_error_right,
+        "e_l": params.radius_error_left,
+        "e_b": params.wheelbase_error,
+        "laser_offset": params.laser_sys_offset,
+        "laser_scale": params.laser_sys_per_metre,
+        "sound": sound_speed_bias(seed, params),
+    }
+
+
 def plan_run(
     world: World,
     cfg: RobotConfig,
