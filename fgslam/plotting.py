@@ -13,7 +13,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from factors.odometry import integrate_poses, ticks_to_distances
-from fgslam.events import LaserScan, OdometryEvent, SonarReading, TruthPose
+from fgslam.events import LaserScan, OdometryEvent, SonarReading, TruthPose, scan_bearings
 from fgslam.safeio import atomic_path
 from fgslam.sim.world import World
 
@@ -103,7 +103,7 @@ def plot_log(
         x, y, th = pose_at(scan.t)
         c, s_ = math.cos(th), math.sin(th)
         lx, ly, lth = x + c * m.x - s_ * m.y, y + s_ * m.x + c * m.y, th + math.radians(m.yaw_deg)
-        b = cfg.laser.bearings + lth
+        b = scan_bearings(scan, cfg.laser) + lth
         ok = np.isfinite(scan.ranges)
         ax.plot(
             lx + scan.ranges[ok] * np.cos(b[ok]),

@@ -40,7 +40,7 @@ from factors.sensor_models import (
     time_registration_inflation,
 )
 from fgslam.config import RobotConfig
-from fgslam.events import Event, LaserScan, OdometryEvent, SonarReading
+from fgslam.events import Event, LaserScan, OdometryEvent, SonarReading, scan_bearings
 from fgslam.frontend.features import SOURCES, End, Feature, OwnTime, ScanFeatures
 from fgslam.frontend.fits import FitRejected, corner_ranges, fit_corner, fit_line
 from fgslam.frontend.fusion import fuse, fused_jacobian
@@ -165,7 +165,7 @@ class FrontEnd:
             self._saw_laser = True
             # time registration (DESIGN 3.4): the host stamp is late by the transmission
             # delay; take off its known mean, the spread is covered by the inflation
-            ev = LaserScan(ev.t - self.mean_delay, ev.ranges)
+            ev = dataclasses.replace(ev, t=ev.t - self.mean_delay)
             if self.poses.last_time == -math.inf:
                 self.poses.add(ev.t, self.odo.pose)
             v, w = self.poses.velocity(ev.t)
@@ -212,10 +212,12 @@ class FrontEnd:
 
     def process_scan(self, scan: LaserScan, v: float, w: float) -> ScanFeatures:
         """Features of one scan (robot frame); ``v``, ``w`` the robot's speed (m/s) and turn
-        rate (rad/s) at the scan for the time-registration inflation."""
+        rate (rad/s) at the scan for the time-registration inflation. The scan's own bearings
+        (:func:`fgslam.events.scan_bearings`) if it has them, evenly spaced (the sonar phantom
+        test looks beams up by their spacing); every other step takes them as they are."""
         stats: Counter = Counter()
         t = scan.t
-        phi = self.phi
+        phi = scan_bearings(scan, self.cfg.laser)
         r = np.asarray(scan.ranges, dtype=float).copy()
         bad = ~np.isfinite(r) | (r <= 0)
         stats["beams_invalid"] = int(bad.sum())

@@ -33,19 +33,22 @@ MAX_MAP_POINTS = 150_000  # laser points drawn in map.png at most
 class ScanSample:
     """A bounded, evenly thinned sample of a run's laser scans, for drawing the map: every
     ``every``-th scan is kept, and when more than ``max_scans`` are held every other one is
-    dropped and ``every`` doubles, so memory stays bounded on logs of any length."""
+    dropped and ``every`` doubles, so memory stays bounded on logs of any length. A scan is
+    kept as (time, ranges), or (time, ranges, bearings) when it has its own bearings
+    (:class:`fgslam.events.LaserScan`)."""
 
     def __init__(self, max_scans: int = 800) -> None:
         self.max_scans = max_scans
         self.every = 1
         self.seen = 0
-        self.scans: list[tuple[float, np.ndarray]] = []
+        self.scans: list[tuple] = []
 
     def add(self, ev: Event) -> None:
         if not isinstance(ev, LaserScan):
             return
         if self.seen % self.every == 0:
-            self.scans.append((ev.t, np.asarray(ev.ranges, dtype=np.float32)))
+            r = np.asarray(ev.ranges, dtype=np.float32)
+            self.scans.append((ev.t, r) if ev.bearings is None else (ev.t, r, ev.bearings))
             if len(self.scans) > self.max_scans:
                 self.scans = self.scans[::2]
                 self.every *= 2
@@ -53,16 +56,18 @@ class ScanSample:
 
 
 def laser_points(
-    scans: list[tuple[float, np.ndarray]],
+    scans: list[tuple],
     times: np.ndarray,
     poses: np.ndarray,
     cfg: RobotConfig,
     max_points: int = MAX_MAP_POINTS,
 ) -> np.ndarray:
-    """World (x, y) of the returns of ``scans`` (time, ranges in the laser frame), placed with
-    the trajectory ``times``/``poses`` (interpolated between keyframes) and the laser mount;
-    scans outside the trajectory's time span and no-return readings are left out, and the
-    points thinned evenly to at most ``max_points``."""
+    """World (x, y) of the returns of ``scans`` (time, ranges in the laser frame, and the
+    scan's own bearings in rad where it has them, as :class:`ScanSample` keeps them; else
+    ``cfg.laser.bearings``), placed with the trajectory ``times``/``poses`` (interpolated
+    between keyframes) and the laser mount; scans outside the trajectory's time span and
+    no-return readings are left out, and the points thinned evenly to at most
+    ``max_points``."""
     if not scans or len(times) < 1:
         return np.zeros((0, 2))
     t = np.array([s[0] for s in scans])
@@ -70,7 +75,7 @@ def laser_points(
     if not keep.any():
         return np.zeros((0, 2))
     t = t[keep]
-    rng = np.array([s[1] for s, k in zip(scans, keep, strict=True) if k], dtype=float)
+    kept = [s for s, k in zip(scans, keep, strict=True) if k]
     if len(times) == 1:
         robot = np.repeat(poses[:1], len(t), axis=0)
     else:
@@ -79,10 +84,24 @@ def laser_points(
     c, s = np.cos(robot[:, 2]), np.sin(robot[:, 2])
     lx = robot[:, 0] + c * m.x - s * m.y
     ly = robot[:, 1] + s * m.x + c * m.y
-    ang = robot[:, 2:3] + math.radians(m.yaw_deg) + cfg.laser.bearings[None, :]
-    ok = np.isfinite(rng) & (rng > 0) & (rng < 0.999 * cfg.laser.max_range)
-    px = (lx[:, None] + rng * np.cos(ang))[ok]
-    py = (ly[:, None] + rng * np.sin(ang))[ok]
+    if all(len(k) < 3 or k[2] is None for k in kept):  # the configured geometry: one array
+        rng = np.array([k[1] for k in kept], dtype=float)
+        ang = robot[:, 2:3] + math.radians(m.yaw_deg) + cfg.laser.bearings[None, :]
+        ok = np.isfinite(rng) & (rng > 0) & (rng < 0.999 * cfg.laser.max_range)
+        px = (lx[:, None] + rng * np.cos(ang))[ok]
+        py = (ly[:, None] + rng * np.sin(ang))[ok]
+    else:  # scans with their own bearings (beam counts may differ): scan by scan
+        xs, ys = [], []
+        for i, k in enumerate(kept):
+            r = np.asarray(k[1], dtype=float)
+            b = cfg.laser.bearings if len(k) < 3 or k[2] is None else np.asarray(k[2], float)
+            if b.size != r.size:
+                raise ValueError(f"a scan of {r.size} ranges with {b.size} bearings")
+            ok = np.isfinite(r) & (r > 0) & (r < 0.999 * cfg.laser.max_range)
+            a = robot[i, 2] + math.radians(m.yaw_deg) + b[ok]
+            xs.append(lx[i] + r[ok] * np.cos(a))
+            ys.append(ly[i] + r[ok] * np.sin(a))
+        px, py = np.concatenate(xs), np.concatenate(ys)
     step = max(1, math.ceil(px.size / max_points))
     return np.column_stack([px[::step], py[::step]])
 
