@@ -48,7 +48,9 @@ from fgslam.readers.sanity import (
 from fgslam.safeio import is_special, temp_path
 
 FORMAT_NAME = "FGSLAM-LOG"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # written; 2 added a scan's own bearings to the laser record
+READ_VERSIONS = (1, 2)  # read
+BEARINGS_TAG = "B"  # in a laser record: the scan's own bearings follow
 GZIP_MAGIC = b"\x1f\x8b"
 MAX_LINE_BYTES = 1 << 23  # longer lines are bad records (bounds memory on corrupt input)
 MAX_PROBLEMS = 20  # messages kept in LogReader.problems in tolerant mode
@@ -145,7 +147,11 @@ def format_record(event: Event) -> str:
         r = np.asarray(event.ranges, dtype=float)
         if r.ndim != 1 or np.isinf(r).any():
             raise ValueError("laser ranges must be a 1-D array of finite numbers or NaN")
-        return " ".join(["L", t, str(r.size), *map(repr, r.tolist())])
+        line = ["L", t, str(r.size), *map(repr, r.tolist())]
+        if event.bearings is not None:  # LaserScan checked them: finite, increasing
+            b = np.asarray(event.bearings, dtype=float)
+            line += [BEARINGS_TAG, *map(repr, b.tolist())]
+        return " ".join(line)
     if isinstance(event, SonarReading):
         parts = [
             f"S {t} {operator.index(event.array)} {_fmt(event.pan, 'pan')} {len(event.echoes)}"
@@ -195,8 +201,13 @@ class LogWriter:
         self._f.write("\n".join(lines) + "\n")
 
     def write(self, event: Event) -> None:
-        """Append one event; ValueError if it does not fit the configuration or the format."""
-        if isinstance(event, LaserScan) and np.size(event.ranges) != self._n_beams:
+        """Append one event; ValueError if it does not fit the configuration or the format (a
+        scan without its own bearings must have the configured beam count)."""
+        if (
+            isinstance(event, LaserScan)
+            and event.bearings is None
+            and np.size(event.ranges) != self._n_beams
+        ):
             raise ValueError(
                 f"laser scan has {np.size(event.ranges)} ranges, configuration has "
                 f"n_beams={self._n_beams}"
@@ -310,29 +321,41 @@ def _odometry(f: list[str], cfg: RobotConfig) -> OdometryEvent:
     return OdometryEvent(t, _int(f[2], "ticks_right", rec), _int(f[3], "ticks_left", rec))
 
 
+def _numbers(toks: list[str], what: str, rec: str, allow_nan: bool) -> np.ndarray:
+    """Tokens as an array of finite numbers (or NaN, ``allow_nan``); _Bad naming the first
+    bad one (``what`` and its index from 1)."""
+    joined = "".join(toks)
+    try:  # fast path; on any doubt, check token by token for a precise message
+        if not joined.isascii() or "_" in joined:
+            raise ValueError
+        v = np.array([float(x) for x in toks], dtype=float)
+        if np.isinf(v).any() or (not allow_nan and np.isnan(v).any()):
+            raise ValueError
+    except ValueError:
+        v = np.array(
+            [_float(x, f"{what} {i + 1}", rec, allow_nan=allow_nan) for i, x in enumerate(toks)]
+        )
+    return v
+
+
 def _laser(f: list[str], cfg: RobotConfig) -> LaserScan:
     rec = "laser record"
     if len(f) < 3:
         raise _Bad(rec, f"{rec}: expected 'L t n r_1 ... r_n', got {len(f)} fields")
     t = _stamp(f[1], rec)
     n = _int(f[2], "n", rec, minimum=0)
-    if n != cfg.laser.n_beams:
-        raise _Bad(rec, f"{rec}: n={n} but the configuration has n_beams={cfg.laser.n_beams}")
     toks = f[3:]
+    bearings = None
+    if len(toks) == 2 * n + 1 and toks[n] == BEARINGS_TAG:  # the scan's own bearings
+        bearings = _numbers(toks[n + 1 :], "bearing", rec, allow_nan=False)
+        if (np.diff(bearings) <= 0).any():
+            raise _Bad(rec, f"{rec}: bearings must increase strictly")
+        toks = toks[:n]
+    elif n != cfg.laser.n_beams:
+        raise _Bad(rec, f"{rec}: n={n} but the configuration has n_beams={cfg.laser.n_beams}")
     if len(toks) != n:
         raise _Bad(rec, f"{rec}: expected {n} ranges after n={n}, got {len(toks)}")
-    joined = "".join(toks)
-    try:  # fast path; on any doubt, check token by token for a precise message
-        if not joined.isascii() or "_" in joined:
-            raise ValueError
-        ranges = np.array([float(x) for x in toks], dtype=float)
-        if np.isinf(ranges).any():
-            raise ValueError
-    except ValueError:
-        ranges = np.array(
-            [_float(x, f"range {i + 1}", rec, allow_nan=True) for i, x in enumerate(toks)]
-        )
-    return LaserScan(t, ranges)
+    return LaserScan(t, _numbers(toks, "range", rec, allow_nan=True), bearings)
 
 
 def _sonar(f: list[str], cfg: RobotConfig) -> SonarReading:
@@ -486,11 +509,11 @@ class LogReader:
         if not (f[1].isascii() and f[1].isdigit() and len(f[1]) < 10):
             raise self._fatal(1, f"bad format version {_clip(f[1])} (expected an integer)")
         self.version = int(f[1])
-        if self.version != FORMAT_VERSION:
+        if self.version not in READ_VERSIONS:
             raise self._fatal(
                 1,
                 f"unsupported log format version {self.version} "
-                f"(this fgslam reads version {FORMAT_VERSION})",
+                f"(this fgslam reads versions {', '.join(map(str, READ_VERSIONS))})",
             )
         config_data: tuple[int, Any] | None = None
         world: str | None = None

@@ -91,7 +91,7 @@ def test_round_trip_every_event_type(tmp_path, name):
     header, out = read_log(path)
     assert out == evs
     assert [type(e) for e in out] == [type(e) for e in evs]
-    assert header.version == 1 and header.world == "box world"
+    assert header.version == 2 and header.world == "box world"
     assert header.meta == {"seed": 7, "simulator": "fgslam-sim 0.1"}
     assert header.config == CFG and header.config.source == f"{path} (CONFIG header)"
     assert isinstance(out[6], SonarReading) and isinstance(out[6].echoes, tuple)
@@ -110,7 +110,7 @@ def test_record_syntax():
 def test_header_and_comments(tmp_path):
     path = write(tmp_path / "a.log", [OdometryEvent(1.0, 1, 2)], world="  lab: 2nd floor ")
     lines = path.read_text().splitlines()
-    assert lines[0] == "FGSLAM-LOG 1" and lines[1].startswith("CONFIG {")
+    assert lines[0] == "FGSLAM-LOG 2" and lines[1].startswith("CONFIG {")
     assert lines[2] == "WORLD   lab: 2nd floor "
     path.write_text(
         "\n".join([lines[0], "# a comment", "", lines[1], 'META {"a": 1}', lines[2]])
@@ -180,7 +180,7 @@ def test_byte_identical_output(tmp_path, suffix):
     if suffix.endswith(".gz"):
         assert a.read_bytes()[:2] == b"\x1f\x8b"
         assert a.read_bytes()[4:8] == b"\0\0\0\0"  # mtime 0
-        assert gzip.decompress(a.read_bytes()).startswith(b"FGSLAM-LOG 1\nCONFIG {")
+        assert gzip.decompress(a.read_bytes()).startswith(b"FGSLAM-LOG 2\nCONFIG {")
 
 
 def test_gzip_detected_by_magic_not_suffix(tmp_path):
@@ -345,11 +345,11 @@ def _cfg_with(**laser):
 @pytest.mark.parametrize(
     ("lines", "expected"),
     [
-        ([], "run.log: empty file, not an fgslam log (expected first line 'FGSLAM-LOG 1')"),
-        (["hello world"], "run.log:1: not an fgslam log (expected first line 'FGSLAM-LOG 1'"),
+        ([], "run.log: empty file, not an fgslam log (expected first line 'FGSLAM-LOG 2')"),
+        (["hello world"], "run.log:1: not an fgslam log (expected first line 'FGSLAM-LOG 2'"),
         (["", "FGSLAM-LOG 1"], "run.log:1: not an fgslam log"),
         (["FGSLAM-LOG"], "run.log:1: not an fgslam log"),
-        (["FGSLAM-LOG 2"], "run.log:1: unsupported log format version 2 (this fgslam reads"),
+        (["FGSLAM-LOG 3"], "run.log:1: unsupported log format version 3 (this fgslam reads"),
         (["FGSLAM-LOG one"], "run.log:1: bad format version 'one' (expected an integer)"),
         (["FGSLAM-LOG 1", "WORLD w"], "run.log: missing CONFIG header line"),
         (["FGSLAM-LOG 1", "WORLD w", "O 1 2 3"], "run.log:3: missing CONFIG header line"),
