@@ -26,7 +26,15 @@ Two kinds of log (``mode``, detected by default):
 
 Odometry increments become encoder ticks of the virtual differential drive of
 :func:`fgslam.readers.common.derived_config` (:class:`~fgslam.readers.common.VirtualDrive`).
-Ranges at or beyond ``no_return`` (m, the LMS reports no return as 81.91) or <= 0 are NaN.
+Ranges at or beyond ``no_return`` (m, the LMS reports no return as 81.91), at or beyond a
+``ROBOTLASER1``'s maximum range, not numbers, infinite or <= 0 are NaN.
+
+Laser geometry: a ``FLASER`` line's n beams lie evenly over 180 deg from -90 deg; a
+``ROBOTLASER1``'s at ``start_angle + k resolution`` (CARMEN's rule; spread over ``fov``
+instead where the two agree to 0.1 % of a beam, the resolution field being rounded). The first
+scan gives the configured laser; a scan whose beams lie elsewhere (another beam count, start
+or resolution) carries its own bearings (:func:`fgslam.events.own_bearings`), in the laser
+frame of the first scan.
 Records of other types (``NEFF``, ``RLASER``, ``SYNC``, ...) are skipped and counted. A scan
 stamped earlier than the last delivered event is skipped and counted (its odometry carried to
 the next sample); an ODOM line stamped before the last delivered event, or (corrected logs)
@@ -48,7 +56,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from fgslam.events import Event, LaserScan, TruthPose
+from fgslam.events import Event, LaserScan, TruthPose, own_bearings
 
 if TYPE_CHECKING:
     from fgslam.dense import OdometryChain
@@ -118,6 +126,24 @@ def _logger(tok: str) -> float:
     return v if abs(v) < MAX_STAMP else math.nan
 
 
+def _ranges(tok: list[str], what: str) -> np.ndarray:
+    """Range fields (m); NaN and infinite ones are kept (no return), text is not a number."""
+    try:
+        return np.array([float(x) for x in tok], dtype=float)
+    except ValueError:
+        raise _Bad(f"{what}: expected numbers") from None
+
+
+def _span(fov: float, resolution: float, n: int) -> float:
+    """A ``ROBOTLASER1``'s angle from its first to its last beam (deg): ``fov`` where
+    ``fov / (n - 1)`` is the resolution within 0.1 % (rounded fields), else ``(n - 1)
+    resolution`` (CARMEN places beam k at ``start_angle + k resolution``)."""
+    step = math.radians(fov) / (n - 1) if n > 1 else 0.0
+    if n < 2 or not resolution > 0 or abs(step - resolution) <= 1e-3 * resolution:
+        return fov
+    return math.degrees((n - 1) * resolution)
+
+
 def _int(tok: str, what: str) -> int:
     try:
         v = int(tok)
@@ -138,16 +164,18 @@ def parse_record(f: list[str]) -> dict:
         n = _int(f[1], "FLASER n")
         if len(f) != n + 11:
             raise _Bad(f"FLASER: expected {n + 11} fields for n={n}, got {len(f)}")
-        v = _floats(f[2 : n + 9], "FLASER")
+        ranges = _ranges(f[2 : n + 2], "FLASER ranges")
+        v = _floats(f[n + 2 : n + 9], "FLASER")
         return {
             "tag": tag,
-            "ranges": np.array(v[:n]),
-            "pose": _pose(v[n : n + 3], "FLASER"),
-            "odom": _pose(v[n + 3 : n + 6], "FLASER odometry"),
-            "t": _stamp(v[n + 6], "FLASER"),
+            "ranges": ranges,
+            "pose": _pose(v[0:3], "FLASER"),
+            "odom": _pose(v[3:6], "FLASER odometry"),
+            "t": _stamp(v[6], "FLASER"),
             "t_logger": _logger(f[-1]),
-            "fov": 180.0,
-            "start": -math.pi / 2,
+            "fov": 180.0,  # deg from the first beam to the last
+            "start": -math.pi / 2,  # rad, the first beam
+            "max_range": math.inf,
             "laser_pose": None,
         }
     if tag == "ROBOTLASER1":
@@ -160,7 +188,7 @@ def parse_record(f: list[str]) -> dict:
         if len(f) != 10 + n + m + 14:
             raise _Bad(f"ROBOTLASER1: expected {24 + n + m} fields, got {len(f)}")
         head = _floats(f[2:7], "ROBOTLASER1")
-        ranges = _floats(f[9 : 9 + n], "ROBOTLASER1 ranges")
+        ranges = _ranges(f[9 : 9 + n], "ROBOTLASER1 ranges")
         # laser pose, robot pose, tv, rv, forward/side safety, turn axis, timestamp
         tail = _floats(f[10 + n + m : 10 + n + m + 12], "ROBOTLASER1")
         fov = math.degrees(head[1])
@@ -168,14 +196,15 @@ def parse_record(f: list[str]) -> dict:
             raise _Bad(f"ROBOTLASER1: field of view {fov} deg")
         return {
             "tag": tag,
-            "ranges": np.array(ranges),
+            "ranges": ranges,
             "pose": _pose(tail[3:6], "ROBOTLASER1"),
             "odom": _pose(tail[3:6], "ROBOTLASER1"),
             "laser_pose": _pose(tail[0:3], "ROBOTLASER1 laser"),
             "t": _stamp(tail[11], "ROBOTLASER1"),
             "t_logger": _logger(f[-1]),
-            "fov": fov,
+            "fov": _span(fov, head[2], n),
             "start": head[0],
+            "max_range": head[3] if head[3] > 0 else math.inf,
         }
     if tag == "ODOM":
         if len(f) != 10:
@@ -343,6 +372,8 @@ class CarmenLog(Source):
             mount = tuple(relative(rp, lp))
         yaw = first["start"] + math.radians(first["fov"]) / 2
         mount = (mount[0], mount[1], mount[2] + yaw)
+        self._middle = yaw  # rad: the laser frame's x axis in the records' angles
+        self._geometry: dict[tuple[int, float, float], np.ndarray | None] = {}
         self.n_beams = n
         self.config = derived_config(n, first["fov"], max_range=self.no_return, mount=mount)
         if mode == "auto":
@@ -451,13 +482,10 @@ class CarmenLog(Source):
                 continue
             # a scan
             ranges = np.asarray(rec["ranges"], dtype=float)
-            if ranges.size != self.n_beams:
-                pr.skip(
-                    "scan with another beam count",
-                    f"{self.name}:{lineno}: {ranges.size} beams, the log's laser has "
-                    f"{self.n_beams}",
-                )
+            if ranges.size == 0:
+                pr.skip("scan without beams", f"{self.name}:{lineno}: no ranges")
                 continue
+            bearings = self.scan_bearings(rec)
             backwards = not (t >= last_scan_t and t >= last_odo_t)
             if self.mode == "corrected":
                 # the ODOM lines since scan k-1, relative to P_{k-1}: one sample each when
@@ -506,11 +534,26 @@ class CarmenLog(Source):
                 yield TruthPose(t, *rec["pose"])
             last_scan_t = t
             ranges = ranges.copy()
-            ranges[(ranges >= self.no_return) | (ranges <= 0)] = np.nan
+            with np.errstate(invalid="ignore"):
+                bad = (ranges >= min(self.no_return, rec["max_range"])) | ~(ranges > 0)
+            ranges[bad] = np.nan
             n_scans += 1
-            yield from hold.event(LaserScan(t, ranges))
+            yield from hold.event(LaserScan(t, ranges, bearings))
         yield from hold.flush()
         self.problems.notes["warnings"] = input_warnings(n_scans, drive.travel, notes)
+
+    def scan_bearings(self, rec: dict) -> np.ndarray | None:
+        """A laser record's bearings (rad, the laser frame of the configuration: the first
+        scan's) as a :class:`LaserScan` takes them: None where they are the configured
+        laser's."""
+        key = (len(rec["ranges"]), rec["start"], rec["fov"])
+        if key not in self._geometry:
+            a = rec["start"] - self._middle + np.linspace(0.0, math.radians(rec["fov"]), key[0])
+            b = own_bearings(a, self.config.laser)
+            if len(self._geometry) >= 256:  # a few geometries (interlaced scans); bounded
+                return b
+            self._geometry[key] = b
+        return self._geometry[key]
 
     def _implausible(self, lineno: int, inc: np.ndarray, dt: float) -> bool:
         """Check an odometry increment over ``dt`` s: False when plausible; else counted and

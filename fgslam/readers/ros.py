@@ -1,9 +1,15 @@
 """ROS 1 and ROS 2 bags through the ``rosbags`` package (``pip install fgslam[ros]``).
 
-- ``sensor_msgs/LaserScan`` (``scan_topic``) -> :class:`~fgslam.events.LaserScan`: the beam
-  count, field of view (``angle_max - angle_min``) and the mount's yaw (the middle of the
-  scan; ``laser_mount`` adds an offset x, y, yaw in rad) come from the first scan; ranges
-  outside ``[range_min, range_max]`` or not finite are NaN.
+- ``sensor_msgs/LaserScan`` (``scan_topic``) -> :class:`~fgslam.events.LaserScan`: the
+  configured laser's beam count, field of view (``angle_max - angle_min``) and the mount's
+  yaw (the middle of the scan) come from the first scan; the mount's pose is the transform
+  from the robot's base frame to the scan's frame in ``/tf_static`` or ``/tf``
+  (:func:`tf_mount`), else the robot origin; ``laser_mount`` (x, y, yaw in rad) replaces
+  it. Beam k of a message lies at ``angle_min + k angle_increment``; a scan whose beams lie
+  elsewhere than the configured laser's (another beam count, another start: a scanner that
+  interlaces its scans) carries its own bearings (:func:`fgslam.events.own_bearings`).
+  Ranges not finite, outside ``[range_min, range_max)`` (a reading at ``range_max`` is no
+  return) or <= 0 are NaN.
 - ``nav_msgs/Odometry`` (``odom_topic``) -> encoder ticks of the virtual differential drive
   (:class:`~fgslam.readers.common.VirtualDrive`): each message's pose relative to the
   previous message's pose.
@@ -44,7 +50,14 @@ from typing import Any
 import numpy as np
 
 from fgslam.config import Mount
-from fgslam.events import Event, LaserScan, SonarEcho, SonarReading
+from fgslam.events import (
+    BEARING_TOLERANCE,
+    Event,
+    LaserScan,
+    SonarEcho,
+    SonarReading,
+    own_bearings,
+)
 from fgslam.readers.common import (
     ReaderError,
     Source,
@@ -71,6 +84,10 @@ ROS_CLOCKS = ("auto", "header", "bag")
 SCAN = "sensor_msgs/msg/LaserScan"
 ODOM = "nav_msgs/msg/Odometry"
 RANGE = "sensor_msgs/msg/Range"
+TF_TYPES = ("tf2_msgs/msg/TFMessage", "tf/msg/tfMessage")
+BASE_FRAMES = ("base_link", "base_footprint")  # the robot's frame, after odometry's child
+TF_MESSAGES = 2000  # messages of a dynamic tf topic searched for the laser's mount at most
+UPRIGHT = math.cos(math.radians(10.0))  # a laser tilted more is not a 2-D mount
 
 
 def _import():
@@ -105,6 +122,139 @@ def _yaw(q: Any) -> float:
     return math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
 
 
+def beam_angles(msg: Any) -> np.ndarray:
+    """The beam angles of a ``sensor_msgs/LaserScan`` (rad, its header frame, beam order):
+    ``angle_min + k angle_increment`` (REP-117), or spread evenly over ``[angle_min,
+    angle_max]`` when the increment is 0 or not a number."""
+    n = len(msg.ranges)
+    a0, inc = float(msg.angle_min), float(msg.angle_increment)
+    if inc != 0 and math.isfinite(inc):
+        return a0 + inc * np.arange(n)
+    return np.linspace(a0, float(msg.angle_max), n)
+
+
+def _span(msg: Any) -> tuple[float, float]:
+    """The first scan's smallest and largest beam angle (rad): ``angle_min`` and ``angle_max``
+    themselves where they agree with the increment (as the configuration had them before
+    per-scan geometry), else the ends of :func:`beam_angles`."""
+    a = beam_angles(msg)
+    lo, hi = float(msg.angle_min), float(msg.angle_max)
+    if len(a) and not (
+        abs(a[0] - lo) <= BEARING_TOLERANCE and abs(a[-1] - hi) <= BEARING_TOLERANCE
+    ):
+        lo, hi = float(a[0]), float(a[-1])
+    return min(lo, hi), max(lo, hi)
+
+
+def _rotation(q: Any) -> np.ndarray:
+    """The 3x3 rotation of a quaternion (normalised)."""
+    x, y, z, w = (float(v) for v in (q.x, q.y, q.z, q.w))
+    s = x * x + y * y + z * z + w * w
+    if not (math.isfinite(s) and s > 0):
+        raise ValueError("not a rotation")
+    x, y, z, w = (v / math.sqrt(s) for v in (x, y, z, w))
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+class TfTree:
+    """The first transform seen of every frame (``child -> parent``) of tf messages."""
+
+    def __init__(self) -> None:
+        self.parent: dict[str, tuple[str, np.ndarray, np.ndarray]] = {}
+
+    def add(self, msg: Any) -> bool:
+        """Take the transforms of a ``tf2_msgs/TFMessage`` of frames not yet known; returns
+        whether there were any."""
+        new = False
+        for tr in msg.transforms:
+            child, parent = tr.child_frame_id.strip("/ "), tr.header.frame_id.strip("/ ")
+            if not child or not parent or child == parent or child in self.parent:
+                continue
+            v = tr.transform.translation
+            try:
+                rot = _rotation(tr.transform.rotation)
+            except ValueError:
+                continue
+            t = np.array([float(v.x), float(v.y), float(v.z)])
+            if np.isfinite(t).all():
+                self.parent[child] = (parent, rot, t)
+                new = True
+        return new
+
+    def _to_root(self, frame: str) -> tuple[str, np.ndarray, np.ndarray]:
+        """The root of ``frame`` and frame's pose in it (rotation, translation)."""
+        rot, t = np.eye(3), np.zeros(3)
+        for _ in range(len(self.parent) + 1):  # a cycle ends the walk
+            if frame not in self.parent:
+                break
+            frame, r, v = self.parent[frame]
+            rot, t = r @ rot, r @ t + v
+        return frame, rot, t
+
+    def pose(self, base: str, frame: str) -> tuple[np.ndarray, np.ndarray] | None:
+        """The pose of ``frame`` in ``base`` (rotation, translation in m), or None when the
+        two are not connected."""
+        rb, rot_b, t_b = self._to_root(base)
+        rf, rot_f, t_f = self._to_root(frame)
+        if rb != rf:
+            return None
+        return rot_b.T @ rot_f, rot_b.T @ (t_f - t_b)
+
+
+def tf_mount(
+    reader: Any, scan_frame: str, bases: Sequence[str]
+) -> tuple[tuple[float, float, float] | None, str]:
+    """The pose (x m, y m, yaw rad) of the laser frame ``scan_frame`` in the robot's frame,
+    the first of ``bases`` that the bag's tf topics connect to it (static topics whole, then
+    the first ``TF_MESSAGES`` messages of the dynamic ones: a transform's first message is
+    taken), and what was found (frames, or why not). None when no tf connects them or when
+    the laser is tilted more than 10 deg from upright (upside down: a 2-D mount cannot hold
+    it)."""
+    scan_frame = scan_frame.strip("/ ")
+    topics = [c for c in reader.connections if c.msgtype in TF_TYPES]
+    if not topics:
+        return None, "no tf topic"
+    if not scan_frame:
+        return None, "the scans have no frame_id"
+    tree = TfTree()
+
+    def search() -> tuple[str, tuple[np.ndarray, np.ndarray]] | None:
+        for b in bases:
+            p = tree.pose(b, scan_frame) if b != scan_frame else (np.eye(3), np.zeros(3))
+            if p is not None:
+                return b, p
+        return None
+
+    found = None
+    static = [c for c in topics if "static" in c.topic]
+    dynamic = [c for c in topics if "static" not in c.topic]
+    for conns, limit in ((static, math.inf), (dynamic, TF_MESSAGES)):
+        for count, (conn, _, raw) in enumerate(reader.messages(connections=conns) if conns else ()):
+            if count >= limit:
+                break
+            try:
+                new = tree.add(reader.deserialize(raw, conn.msgtype))
+            except Exception:  # a damaged tf message: the mount comes from the others
+                continue
+            if new and conns is dynamic and (found := search()) is not None:
+                break
+        if (found := found or search()) is not None:
+            break
+    if found is None:
+        return None, f"tf connects none of {', '.join(bases)} to {scan_frame}"
+    base, (rot, t) = found
+    if rot[2, 2] < UPRIGHT:
+        tilt = math.degrees(math.acos(max(-1.0, min(1.0, float(rot[2, 2])))))
+        return None, f"{scan_frame} is tilted {tilt:.0f} deg from upright in {base}"
+    return (float(t[0]), float(t[1]), math.atan2(rot[1, 0], rot[0, 0])), f"{base} -> {scan_frame}"
+
+
 class RosBag(Source):
     """A ROS 1 or ROS 2 bag as fgslam events; see the module documentation."""
 
@@ -116,7 +266,7 @@ class RosBag(Source):
         scan_topic: str | None = None,
         odom_topic: str | None = None,
         range_topics: Sequence[str] = (),
-        laser_mount: tuple[float, float, float] = (0.0, 0.0, 0.0),
+        laser_mount: tuple[float, float, float] | None = None,
         range_mounts: Sequence[tuple[float, float, float]] = (),
         tolerant: bool = False,
         timestamps: str = "auto",
@@ -141,14 +291,21 @@ class RosBag(Source):
                 self._pick(topics, t, RANGE, "--range-topic") for t in range_topics
             ]
             first = self._clock_pass(reader)
+            mount_note: dict[str, Any] = {"source": "laser_mount option"}
+            if first is not None and laser_mount is None:
+                tf, why = tf_mount(reader, first.header.frame_id, self._bases(reader))
+                laser_mount = tf or (0.0, 0.0, 0.0)
+                mount_note = {"source": "tf" if tf else "robot origin", "tf": why}
         if first is None:
             raise ReaderError(f"{self.name}: topic {self.scan_topic} has no messages")
         clock_record = self._choose_clock(timestamps, backwards_tolerance)
         n = len(first.ranges)
-        fov = round(math.degrees(first.angle_max - first.angle_min), 4)  # float32 angles
+        lo, hi = _span(first)
+        fov = round(math.degrees(hi - lo), 4)  # float32 angles
         if n < 2 or not 0 < fov <= 360:
             raise ReaderError(f"{self.name}: first scan has {n} beams over {fov:g} deg")
-        yaw = 0.5 * (first.angle_min + first.angle_max) + laser_mount[2]
+        self._middle = 0.5 * (lo + hi)  # rad: the laser frame's x axis in the scans' frame
+        yaw = self._middle + laser_mount[2]
         cfg = derived_config(
             n,
             fov,
@@ -171,6 +328,8 @@ class RosBag(Source):
             cfg = dataclasses.replace(cfg, sonar=dataclasses.replace(cfg.sonar, arrays=arrays))
         self.config = cfg
         self.n_beams = n
+        self._geometry: dict[tuple[int, float, float, float], Any] = {}
+        mount_note["mount"] = [round(float(v), 6) for v in laser_mount]
         self.world = f"ROS bag {Path(self.name).name}"
         self.meta = {
             "source_format": "ros",
@@ -179,6 +338,7 @@ class RosBag(Source):
             "odom_topic": self.odom_topic,
             "range_topics": list(self.range_topics),
             "laser": f"{n} beams over {fov:g} deg",
+            "laser_mount": mount_note,
             "timestamps": clock_record,
         }
         self.problems.notes["timestamps"] = clock_record
@@ -221,6 +381,43 @@ class RosBag(Source):
             h.append(header)
             b.append(1e-9 * float(bag_ns))
         return first
+
+    def _bases(self, reader: Any) -> list[str]:
+        """The robot's frame candidates: the odometry's child frame, then ``BASE_FRAMES``."""
+        out = []
+        conns = [c for c in reader.connections if c.topic == self.odom_topic]
+        for conn, _, raw in reader.messages(connections=conns):
+            try:
+                child = reader.deserialize(raw, conn.msgtype).child_frame_id.strip("/ ")
+            except Exception:  # the reading pass reports it
+                continue
+            out = [child] if child else []
+            break
+        return out + [b for b in BASE_FRAMES if b not in out]
+
+    def scan_geometry(self, msg: Any) -> tuple[np.ndarray | None, bool] | None:
+        """A scan message's bearings in the laser frame as a :class:`LaserScan` takes them
+        (None: the configured laser's) and whether its ranges run backwards (a negative
+        increment: reversed so that the bearings increase); None when its beams have no
+        usable geometry (no beams, angles not numbers, two beams at one angle)."""
+        key = (
+            len(msg.ranges),
+            float(msg.angle_min),
+            float(msg.angle_max),
+            float(msg.angle_increment),
+        )
+        if key in self._geometry:
+            return self._geometry[key]
+        a = beam_angles(msg) - self._middle
+        back = len(a) > 1 and a[-1] < a[0]
+        if back:
+            a = a[::-1]
+        geo = None
+        if len(a) and np.isfinite(a).all() and (np.diff(a) > 0).all():
+            geo = (own_bearings(a, self.config.laser), bool(back))
+        if len(self._geometry) < 256:  # a few geometries (interlaced scans); bounded
+            self._geometry[key] = geo
+        return geo
 
     def _choose_clock(self, requested: str, tolerance: float) -> dict[str, Any]:
         """The defects of the header stamps (per topic, and whether the topics share one
@@ -358,15 +555,22 @@ class RosBag(Source):
                         self._odo_notes["holes"] += 1
                         in_hole = True
                 if conn.topic == self.scan_topic:
-                    r = np.asarray(msg.ranges, dtype=float)
-                    if r.size != self.n_beams:
-                        pr.skip("scan with another beam count")
+                    geo = self.scan_geometry(msg)
+                    if geo is None:
+                        pr.skip(
+                            "scan without beam geometry",
+                            f"{self.name}: {conn.topic} at t={t:.6f}: {len(msg.ranges)} beams "
+                            f"from {msg.angle_min:g} rad by {msg.angle_increment:g} rad",
+                        )
                         continue
-                    r = r.copy()
-                    bad = ~np.isfinite(r) | (r < msg.range_min) | (r > msg.range_max) | (r <= 0)
-                    r[bad] = np.nan
+                    r = np.array(msg.ranges, dtype=float)
+                    with np.errstate(invalid="ignore"):
+                        bad = ~np.isfinite(r) | (r < msg.range_min) | (r >= msg.range_max)
+                    r[bad | (r <= 0)] = np.nan
+                    if geo[1]:
+                        r = r[::-1].copy()
                     n_scans += 1
-                    yield from hold.event(LaserScan(t, r))
+                    yield from hold.event(LaserScan(t, r, geo[0]))
                 else:
                     r = float(msg.range)
                     echoes = ()
