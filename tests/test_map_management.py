@@ -15,6 +15,7 @@ from slam_scenes import PAPER, room_events
 from factors.odometry import Preintegrated
 from fgslam import evaluation
 from fgslam.config import with_scanmatch
+from fgslam.errors import RunWarning
 from fgslam.frontend.features import Feature
 from fgslam.slam import association, step
 from fgslam.slam.association import AssociationParams, Candidate
@@ -134,15 +135,17 @@ def test_mutual_exclusion_and_ambiguity():
 
 def test_a_landmark_its_sightings_do_not_constrain_never_reaches_the_graph():
     """Issue 16's failing pattern: a point seen from one place with its range unknown
-    (variance 1e8 m^2: a bearing-only sighting). Admitted at once, iSAM2 stops with an
-    indeterminate system near the landmark; the lifecycle admits a landmark only once its
-    sightings constrain it (every sigma of its fused world estimate below confirm_sigma)."""
+    (variance 1e8 m^2: a bearing-only sighting). Admitted at once, iSAM2 stopped with an
+    indeterminate system near the landmark (until issue 31: now the landmark's weak prior
+    keeps the system solvable and the run goes on); the lifecycle admits a landmark only
+    once its sightings constrain it (every sigma of its fused world estimate below
+    confirm_sigma)."""
     bad = _point((4.0, 1.0), np.diag([1e-4, 1e8]))
     old_rule = MapParams(confirm_sigma_m=math.inf, confirm_sigma_rad=math.inf)
     s = SlamStep(GraphBackend(), old_rule)
     s.keyframe(0.0, [bad], None, np.zeros(3))
-    with pytest.raises(BackendError, match=r"Indetermin.*l0"):
-        s.keyframe(1.0, [bad], _still())
+    s.keyframe(1.0, [bad], _still())
+    assert list(s.be.kinds.values()) == ["point"] and np.all(np.isfinite(s.be.pose()))
     s = SlamStep(GraphBackend())
     for k in range(6):
         s.keyframe(float(k), [bad], _still() if k else None, np.zeros(3) if k == 0 else None)
@@ -255,12 +258,9 @@ def test_isam2_final_estimate_is_at_the_batch_optimum():
 # ------------------------------------------------------------------ partial results
 
 
-def test_backend_failure_mid_run_returns_the_result_up_to_the_last_good_keyframe(monkeypatch):
-    """iSAM2 fails at keyframe 30 (an unconstrained variable slipped into its update): the
-    pipeline stops feeding iSAM2 and its result holds keyframes 0-29 with
-    stats["partial"] naming keyframe, time and variable; the EKF in the same pass runs on."""
-    evs, cfg, _ = room_events(0)
-    cfg = with_scanmatch(cfg, PAPER)  # one keyframe per scan
+def _unconstrained_at_30(monkeypatch):
+    """GraphBackend.commit with an unconstrained variable (a point only a bearing measures)
+    slipped into keyframe 30's update."""
     real = GraphBackend.commit
 
     def commit(self):
@@ -276,10 +276,43 @@ def test_backend_failure_mid_run_returns_the_result_up_to_the_last_good_keyframe
         return real(self)
 
     monkeypatch.setattr(GraphBackend, "commit", commit)
-    pipe = SlamPipeline(cfg, ["ekf", "isam2"], "fused")
+
+
+def _room_pass(backends):
+    evs, cfg, _ = room_events(0)
+    cfg = with_scanmatch(cfg, PAPER)  # one keyframe per scan
+    pipe = SlamPipeline(cfg, backends, "fused")
     for ev in [e for e in evs if e.t < 20.0]:
         pipe.add(ev)
-    ekf, isam = pipe.finish()
+    return pipe.finish()
+
+
+def test_an_unconstrained_variable_is_repaired_and_the_run_goes_on(monkeypatch):
+    """Until issue 31 the run of iSAM2 ended at keyframe 30; now the keyframe is repaired
+    (the new landmark removed, a warning naming it, report.json's statistics list it) and
+    the run goes on to the end, as accurate as before."""
+    _unconstrained_at_30(monkeypatch)
+    with pytest.warns(RunWarning, match="keyframe 30 .*l999"):
+        (isam,) = _room_pass(["isam2"])
+    assert "partial" not in isam.stats and isam.stats["graph_repairs"] == 1
+    assert "l999" in isam.stats["graph_repair_log"][0]
+    assert len(isam.times) > 30 and np.all(np.isfinite(isam.poses))
+    truth = evaluation.interpolate_poses(isam.truth_t, isam.truth, isam.times)
+    assert evaluation.ate(isam.poses, truth)["rmse"] < 0.1
+
+
+def test_backend_failure_mid_run_returns_the_result_up_to_the_last_good_keyframe(monkeypatch):
+    """A keyframe no repair can save (every repair fails): the pipeline stops feeding iSAM2
+    and its result holds keyframes 0-29 with stats["partial"] naming keyframe, time and
+    variable; the EKF in the same pass runs on."""
+    _unconstrained_at_30(monkeypatch)
+
+    def no_repair(self, reason, keys, bad=None):
+        self.failed = f"iSAM2 could not solve keyframe {self.k}: {reason}"
+        raise BackendError(self.failed)
+
+    monkeypatch.setattr(GraphBackend, "_repair", no_repair)
+    ekf, isam = _room_pass(["ekf", "isam2"])
     part = isam.stats["partial"]
     assert part["keyframe"] == 30 and "l999" in part["error"] and part["t"] > 0
     json.dumps(part)

@@ -338,21 +338,3 @@ def test_vectorised_residuals_match_the_model(kind, dimz):
         for j in (0, 2)[: 1 + (dimz == 3)]:  # bearing, and a corner's bisector
             diff[:, j] = np.remainder(diff[:, j] + math.pi, 2 * math.pi) - math.pi
         np.testing.assert_allclose(diff, 0.0, atol=1e-9)
-
-
-def test_an_under_constrained_landmark_is_reported_with_its_name():
-    """GTSAM's indeterminate-system message starts with a blank line: the user still learns
-    which variable was under-constrained, as a BackendError (a UserError), not a traceback."""
-    import gtsam
-
-    from fgslam.errors import UserError
-    from fgslam.slam.graph import GraphBackend, L, X
-
-    be = GraphBackend()
-    be.start(0.0, np.zeros(3), np.eye(3) * 1e-4)
-    be.kinds[0] = "point"
-    be.new_values.insert(L(0), np.array([2.0, 0.0]))
-    noise = gtsam.noiseModel.Isotropic.Sigma(1, 0.01)
-    be.new_graph.add(gtsam.BearingFactor2D(X(0), L(0), gtsam.Rot2(0.0), noise))  # no range
-    with pytest.raises(UserError, match=r"keyframe 0 .*Indetermin.*l0"):
-        be.commit()

@@ -71,6 +71,11 @@ class Backend(ABC):
     @abstractmethod
     def landmark_covariances(self) -> dict[int, NDArray[np.float64]]: ...
 
+    def take_removed(self) -> list[int]:
+        """The landmarks the backend had to remove since the last call (a repaired graph:
+        :meth:`fgslam.slam.graph.GraphBackend._repair`); the map manager drops them."""
+        return []
+
     def calibration_estimate(
         self,
     ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None] | None:

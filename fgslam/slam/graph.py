@@ -14,12 +14,23 @@ Association uses the current estimate and the *exact* joint marginal covariance 
 pose and the candidate landmarks (``ISAM2.jointMarginalCovariance``), propagated through the
 odometry of the new keyframe exactly as the EKF predicts; GTSAM's tangent-space covariances
 are rotated into world coordinates first.
+
+The graph never ends a run (docs/robustness.md): iSAM2 factorises by QR (GTSAM's Cholesky
+declares a system indeterminate when two consecutive pivots differ by more than 2^12, which a
+well-measured wall beside a poorly constrained direction along a corridor reaches on real
+logs); every new landmark carries a weak prior and every keyframe whose links are all robust a
+weak Gaussian link, so no variable is ever unconstrained; an update that still fails or gives
+a non-finite estimate is repaired (:meth:`GraphBackend._repair`: the offending new landmark
+removed, or a weak prior on the offending variable) with a warning naming it; a covariance
+query that fails falls back to the separate marginals, then to a wide covariance, counted.
 """
 
 from __future__ import annotations
 
 import math
+import re
 import time
+import warnings
 from collections import Counter
 
 import gtsam
@@ -33,7 +44,7 @@ from factors.odometry import (
     with_calibration,
 )
 from fgslam.choices import SONAR_TIMING_CHOICES
-from fgslam.errors import UserError
+from fgslam.errors import RunWarning, UserError
 from fgslam.frontend.features import Feature
 from fgslam.slam import models
 from fgslam.slam.backend import Backend, Estimate
@@ -54,6 +65,38 @@ C = gtsam.symbol("c", 0)
 
 class BackendError(UserError):
     """The optimiser could not solve the problem (reported to the user, never a traceback)."""
+
+
+# a weak prior's standard deviation (m and rad alike): information 1e-6, far below any
+# measurement's, so it moves no estimate measurably but no variable is ever unconstrained
+WEAK_SIGMA = 1e3
+# the covariance assumed when a marginal cannot be computed at all: wide (1 m, 1 rad), so
+# association gates stay open rather than closed; counted as covariance_fallbacks
+FALLBACK_VARIANCE = 1.0
+MAX_REPAIRS = 4  # attempts to repair one keyframe's update before giving up
+
+
+def weak_noise(dim: int) -> gtsam.noiseModel.Base:
+    """The noise of a weak prior or link of dimension ``dim`` (:data:`WEAK_SIGMA`)."""
+    return gtsam.noiseModel.Isotropic.Sigma(dim, WEAK_SIGMA)
+
+
+def _prior(key: int, value: object, noise: gtsam.noiseModel.Base) -> gtsam.NonlinearFactor:
+    """A prior on ``key`` at ``value`` (a ``Pose2`` or a vector)."""
+    if isinstance(value, gtsam.Pose2):
+        return gtsam.PriorFactorPose2(key, value, noise)
+    return gtsam.PriorFactorVector(key, np.asarray(value, dtype=float), noise)
+
+
+def _culprit(reason: str) -> int | None:
+    """The key GTSAM named in an indeterminate-system message ("... (Symbol: l160)")."""
+    m = re.search(r"Symbol: ([a-zA-Z])(\d+)", reason)
+    return gtsam.symbol(m.group(1), int(m.group(2))) if m else None
+
+
+def _key_name(key: int) -> str:
+    sym = gtsam.Symbol(key)
+    return f"{chr(sym.chr())}{sym.index()}"
 
 
 def _rot_block(th: float) -> NDArray[np.float64]:
@@ -108,6 +151,7 @@ class GraphBackend(Backend):
         loop_updates: int = 2,
         calibration: Calibration | NDArray[np.float64] | None = None,
         sonar_timing: str = "scan-frame",
+        factorization: str = "QR",
     ) -> None:
         super().__init__()
         if sonar_timing not in SONAR_TIMING_CHOICES:
@@ -133,7 +177,13 @@ class GraphBackend(Backend):
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(relinearize_threshold)
         params.relinearizeSkip = relinearize_skip
+        params.setFactorization(factorization)
+        self._params = params
         self.isam = gtsam.ISAM2(params)
+        # what the guard did (docs/robustness.md): one line per repair or fallback, and the
+        # landmarks removed by a repair (the map manager takes them out: take_removed)
+        self.repairs: list[str] = []
+        self._removed: list[int] = []
         self.graph = gtsam.NonlinearFactorGraph()  # everything, for batch and for reports
         self.new_graph = gtsam.NonlinearFactorGraph()
         self.new_values = gtsam.Values()
@@ -158,13 +208,11 @@ class GraphBackend(Backend):
         p = gtsam.Pose2(*pose)
         # the prior is on the body tangent: rotate the world covariance
         R = _rot_block(pose[2])
-        self.new_graph.add(
-            gtsam.PriorFactorPose2(X(0), p, gtsam.noiseModel.Gaussian.Covariance(R.T @ cov @ R))
-        )
+        self.new_graph.add(gtsam.PriorFactorPose2(X(0), p, models.noise_model(R.T @ cov @ R)))
         self.new_values.insert(X(0), p)
         if self.cal is not None:
             self.new_values.insert(C, np.zeros(self.cal.dim))
-            prior = gtsam.noiseModel.Gaussian.Covariance(self.cal.prior)
+            prior = models.noise_model(self.cal.prior)
             self.new_graph.add(gtsam.PriorFactorVector(C, np.zeros(self.cal.dim), prior))
             self._c_cov = self.cal.prior.copy()
         self._pose_pred = np.array(pose, dtype=float)
@@ -189,6 +237,11 @@ class GraphBackend(Backend):
             and cal.wheels is not None
             and (pre is not None and pre.calibration_jacobian is not None)
         )
+        if kernel != "none":  # every link robust: a weak Gaussian one keeps the chain whole
+            first = motions[0]
+            self.new_graph.add(
+                gtsam.BetweenFactorPose2(X(self.k - 1), X(self.k), first.delta, weak_noise(3))
+            )
         for m in motions:
             if m is pre and self._calibrated:
                 noise = models.noise_model(m.covariance_start, kernel)
@@ -240,7 +293,7 @@ class GraphBackend(Backend):
         d = self._pre.delta
         if j == kp:
             return d, self._pre.covariance.copy()
-        J = self.isam.jointMarginalCovariance([X(j), X(kp)]).fullMatrix()
+        J = self.joint_covariance([X(j), X(kp)])
         Ad_d = d.inverse().AdjointMap()
         M = np.hstack([-Ad_d @ r.inverse().AdjointMap(), Ad_d])
         C = M @ J @ M.T + self._pre.covariance
@@ -279,7 +332,7 @@ class GraphBackend(Backend):
         # with calibration on a wheels-only link, its uncertainty enters the prediction
         cal = self._calibrated and self._pre.calibration_jacobian is not None
         keys = [X(self.k - 1)] + ([C] if cal else []) + [L(lid) for lid in lids]
-        J = self.isam.jointMarginalCovariance(keys).fullMatrix()
+        J = self.joint_covariance(keys)
         # tangent (body) -> world for Pose2 blocks
         prev = self._prev
         blocks = [_rot_block(prev.theta())] + ([np.eye(self.cal.dim)] if cal else [])
@@ -318,8 +371,11 @@ class GraphBackend(Backend):
         J = self._cal_jacobian(f)
         z = f.z if J is None else f.z - J @ self._c  # the measurement, calibrated
         lm, _, _ = models.to_world(f.kind, self._pose_pred, z)
-        self.new_values.insert(L(lid), models.value(f.kind, lm))
+        value = models.value(f.kind, lm)
+        self.new_values.insert(L(lid), value)
         self.new_graph.add(self._factor(lid, f))
+        # never unconstrained, whatever the robust kernel makes of its measurements
+        self.new_graph.add(_prior(L(lid), value, weak_noise(models.DIM[f.kind])))
 
     # a reading this far outside the last two keyframes' interval stays in the scan frame
     OWN_TIME_REACH = (-1.0, 2.0)
@@ -355,23 +411,7 @@ class GraphBackend(Backend):
         self.new_graph.add(kind.equality(L(keep), L(drop), noise))
 
     def commit(self) -> None:
-        try:
-            self.isam.update(self.new_graph, self.new_values)
-        except RuntimeError as exc:  # IndeterminantLinearSystemException and kin
-            # back to the last good keyframe: this one's variables and factors are dropped
-            self.failed = (
-                f"iSAM2 could not solve keyframe {self.k} (t = {self._pending_t:.2f} s): "
-                f"{_reason(exc)}"
-            )
-            for key in self.new_values.keys():
-                if gtsam.Symbol(key).chr() == ord("l"):
-                    self.kinds.pop(gtsam.Symbol(key).index(), None)
-            if self.k > 0:
-                self.times.pop()
-            self.k -= 1
-            self.new_graph = gtsam.NonlinearFactorGraph()
-            self.new_values = gtsam.Values()
-            raise BackendError(self.failed) from None
+        self._update_guarded()
         self.graph.push_back(self.new_graph)
         # start a new empty graph: re-adding factors would silently double information
         self.new_graph = gtsam.NonlinearFactorGraph()
@@ -394,8 +434,181 @@ class GraphBackend(Backend):
         if self.cal is not None:
             self._c = np.asarray(self.isam.calculateEstimateVector(C), dtype=float)
             if self.cal.measured:  # for association (for_association)
-                self._c_cov = self.isam.marginalCovariance(C)
+                self._c_cov = self.joint_covariance([C])
         self.trajectory.append((self._pending_t, self._pose_pred.copy(), None))
+
+    # ------------------------------------------------------------------ the guard
+
+    def take_removed(self) -> list[int]:
+        """The landmarks a repair removed since the last call (the map manager drops them)."""
+        out, self._removed = self._removed, []
+        return out
+
+    def _unsolved(self, isam: gtsam.ISAM2, keys) -> int | None:
+        """The first of ``keys`` (poses, landmarks, the calibration) whose estimate by
+        ``isam`` is not finite (a singular QR factorisation gives inf or NaN), or None."""
+        for key in keys:
+            if not isam.valueExists(key):
+                continue
+            sym = gtsam.Symbol(key)
+            if sym.chr() == ord("x"):
+                p = isam.calculateEstimatePose2(key)
+                v = np.array([p.x(), p.y(), p.theta()])
+            elif key == C:
+                v = np.asarray(isam.calculateEstimateVector(key))
+            else:
+                v = models.KINDS[self.kinds[sym.index()]].read_isam(isam, key)
+            if not np.all(np.isfinite(v)):
+                return key
+        return None
+
+    def _update_guarded(self) -> None:
+        """iSAM2's update with this keyframe's factors and values; when GTSAM cannot solve
+        them (an indeterminate system) or the estimate of the new variables is not finite,
+        :meth:`_repair` the keyframe. Raises :class:`BackendError` only when every repair
+        failed."""
+        keys = sorted(set(self.new_values.keys()) | ({X(self.k)} if self.k >= 0 else set()))
+        try:
+            self.isam.update(self.new_graph, self.new_values)
+            bad = self._unsolved(self.isam, keys)
+            if bad is None:
+                return
+            reason = f"no finite estimate of {_key_name(bad)}"
+        except RuntimeError as exc:  # IndeterminantLinearSystemException and kin
+            bad, reason = None, _reason(exc)
+        try:
+            self._repair(reason, keys, bad)
+        except BackendError:  # back to the last good keyframe: this one's variables dropped
+            for key in self.new_values.keys():
+                if gtsam.Symbol(key).chr() == ord("l"):
+                    self.kinds.pop(gtsam.Symbol(key).index(), None)
+            if self.k > 0:
+                self.times.pop()
+            self.k -= 1
+            self.new_graph = gtsam.NonlinearFactorGraph()
+            self.new_values = gtsam.Values()
+            raise
+
+    def _repair(self, reason: str, keys: list[int], bad: int | None = None) -> None:
+        """Rebuild iSAM2 over the whole graph with this keyframe repaired: the variable GTSAM
+        named gets a weak prior, or, a landmark new in this keyframe, is removed with its
+        factors; failing that, all of this keyframe's new landmarks are removed and every
+        variable it touches gets a weak prior. Each repair is one line in :attr:`repairs`."""
+        try:  # the estimate so far (the failed update left iSAM2 unusable)
+            base = gtsam.Values(self.isam.getLinearizationPoint())
+        except RuntimeError:
+            base = gtsam.Values(self._est)
+        missing = {k for k in self.new_values.keys() if not base.exists(k)}
+        base.insert(self._values_without(self.new_values, set(self.new_values.keys()) - missing))
+        new_lms = {k for k in self.new_values.keys() if gtsam.Symbol(k).chr() == ord("l")}
+        drop: set[int] = set()
+        priors: set[int] = set()
+        what = ""
+        for attempt in range(MAX_REPAIRS + 1):
+            key = _culprit(reason) if bad is None else bad
+            if attempt == MAX_REPAIRS or key is None or key in drop or key in priors:
+                drop |= new_lms  # the last resort: no new landmark, weak priors around
+                priors |= {k for k in keys if k not in new_lms}
+                names = ", ".join(_key_name(k) for k in sorted(new_lms)) or "none"
+                what = f"new landmarks removed ({names}), weak priors on the keyframe's poses"
+            elif key in new_lms:
+                drop.add(key)
+                what = f"new landmark {_key_name(key)} removed"
+            else:
+                priors.add(key)
+                what = f"weak prior on {_key_name(key)}"
+            graph = gtsam.NonlinearFactorGraph()
+            graph.push_back(self.graph)
+            for i in range(self.new_graph.size()):
+                f = self.new_graph.at(i)
+                if f is not None and not drop.intersection(f.keys()):
+                    graph.add(f)
+            values = self._values_without(base, drop)
+            for key in priors:
+                graph.add(self._weak_prior(key, values))
+            isam = gtsam.ISAM2(self._params)
+            try:
+                isam.update(graph, values)
+                bad = self._unsolved(isam, [k for k in keys if k not in drop])
+                if bad is None:
+                    break
+                reason = f"no finite estimate of {_key_name(bad)}"
+            except RuntimeError as exc:
+                bad, reason = None, _reason(exc)
+        else:
+            self.failed = (
+                f"iSAM2 could not solve keyframe {self.k} (t = {self._pending_t:.2f} s) even "
+                f"after repairs: {reason}"
+            )
+            raise BackendError(self.failed)
+        msg = f"keyframe {self.k} (t = {self._pending_t:.2f} s): {what} ({reason})"
+        self.repairs.append(msg)
+        warnings.warn(f"the graph was repaired at {msg}", RunWarning, stacklevel=2)
+        self.stats["graph_repairs"] += 1
+        for key in drop:
+            lid = gtsam.Symbol(key).index()
+            self.kinds.pop(lid, None)
+            self._means.pop(lid, None)
+            self._touched.discard(lid)
+            self._removed.append(lid)
+            self.stats["landmarks_removed_by_repair"] += 1
+        self.isam = isam
+        # the rebuilt graph replaces the committed one (commit pushes nothing more)
+        self.graph = graph
+        self.new_graph = gtsam.NonlinearFactorGraph()
+        self._est = self.isam.calculateEstimate()
+        self._est_poses = None
+
+    def _values_without(self, base: gtsam.Values, drop: set[int]) -> gtsam.Values:
+        """A copy of ``base`` without the keys ``drop``."""
+        values = gtsam.Values()
+        for key in base.keys():
+            if key in drop:
+                continue
+            sym = gtsam.Symbol(key)
+            if sym.chr() == ord("x"):
+                values.insert(key, base.atPose2(key))
+            elif key == C:
+                values.insert(key, base.atVector(key))
+            else:
+                kind = models.KINDS[self.kinds[sym.index()]]
+                values.insert(key, kind.value(kind.read(base, key)))
+        return values
+
+    def _weak_prior(self, key: int, values: gtsam.Values) -> gtsam.NonlinearFactor:
+        sym = gtsam.Symbol(key)
+        if sym.chr() == ord("x"):
+            return gtsam.PriorFactorPose2(key, values.atPose2(key), weak_noise(3))
+        if key == C:
+            v = np.asarray(values.atVector(key))
+            return gtsam.PriorFactorVector(key, v, weak_noise(len(v)))
+        kind = models.KINDS[self.kinds[sym.index()]]
+        return _prior(key, kind.value(kind.read(values, key)), weak_noise(kind.dim))
+
+    def joint_covariance(self, keys: list[int]) -> NDArray[np.float64]:
+        """iSAM2's joint marginal covariance of ``keys`` (tangent spaces); when GTSAM cannot
+        compute it, the block diagonal of the separate marginals, and failing those a wide
+        covariance (:data:`FALLBACK_VARIANCE`), each counted (``covariance_fallbacks``)."""
+        try:
+            return self.isam.jointMarginalCovariance(keys).fullMatrix()
+        except RuntimeError:
+            self.stats["covariance_fallbacks"] += 1
+        blocks = []
+        for key in keys:
+            try:
+                blocks.append(np.asarray(self.isam.marginalCovariance(key)))
+            except RuntimeError:
+                n = self._dim(key)
+                blocks.append(np.eye(n) * FALLBACK_VARIANCE)
+        return _blockdiag(blocks)
+
+    def _dim(self, key: int) -> int:
+        sym = gtsam.Symbol(key)
+        if sym.chr() == ord("x"):
+            return 3
+        if key == C:
+            return self.cal.dim
+        return models.DIM[self.kinds[sym.index()]]
 
     # ------------------------------------------------------------------ results
 
@@ -436,7 +649,7 @@ class GraphBackend(Backend):
         self.final_updates = 0
         for _ in range(self.max_final_updates):
             try:
-                delta = self.graph.linearize(est).optimize()
+                delta = solve_linear(self.graph.linearize(est))
             except RuntimeError:  # an ill-conditioned graph: keep the estimate so far
                 break
             step = float(np.max(np.abs(delta.vector()), initial=0.0))
@@ -478,9 +691,20 @@ class GraphSolution:
         self.covariances = covariances
         self._marg: gtsam.Marginals | None = None
 
-    def _marginals(self) -> gtsam.Marginals:
+    def _marginals(self) -> gtsam.Marginals | gtsam.ISAM2:
+        """GTSAM's marginals of the whole graph (one Cholesky factorisation); where Cholesky
+        declares the system indeterminate (pivots more than 2^12 apart), one QR
+        factorisation by an iSAM2 over the same graph at the same estimate. Either answers
+        ``marginalCovariance(key)``; raises RuntimeError when neither can."""
         if self._marg is None:
-            self._marg = gtsam.Marginals(self.graph, self.values)
+            try:
+                self._marg = gtsam.Marginals(self.graph, self.values)
+            except RuntimeError:
+                params = gtsam.ISAM2Params()
+                params.setFactorization("QR")
+                isam = gtsam.ISAM2(params)
+                isam.update(self.graph, self.values)
+                self._marg = isam
         return self._marg
 
     def trajectory(self) -> list[tuple[float, NDArray[np.float64], NDArray[np.float64] | None]]:
@@ -621,7 +845,7 @@ def levenberg_marquardt(
             s = math.sqrt(lam)
             for key, n in dims.items():
                 damped.add(key, s * np.eye(n), np.zeros(n), gtsam.noiseModel.Unit.Create(n))
-            new = values.retract(damped.optimize())
+            new = values.retract(solve_linear(damped))
             new_err = graph.error(new)
             if new_err <= err:
                 improved = True
@@ -635,6 +859,16 @@ def levenberg_marquardt(
         if rel < rel_tol:
             break
     return values, it
+
+
+def solve_linear(lin: gtsam.GaussianFactorGraph) -> gtsam.VectorValues:
+    """The least-squares solution of ``lin``: by Cholesky (fast), or by QR where Cholesky
+    declares the system indeterminate (pivots more than 2^12 apart, which real graphs reach:
+    module doc); raises RuntimeError only when QR fails too."""
+    try:
+        return lin.optimize()
+    except RuntimeError:
+        return lin.optimize(gtsam.EliminateQR)
 
 
 def _reason(exc: BaseException) -> str:

@@ -35,6 +35,7 @@ from fgslam.slam import geometry, models
 from fgslam.slam.association import Candidate, chi2_gate
 
 TENTATIVE, CONFIRMED, UNRELIABLE = "tentative", "confirmed", "unreliable"
+REMOVED = "removed"  # taken out of the estimator (a repaired graph); its id is not reused
 
 
 @dataclass
@@ -208,6 +209,14 @@ class Lifecycle:
         ]
         for lid in old:
             self.stats[f"{self.landmarks.pop(lid).kind}s_never_confirmed"] += 1
+
+    def remove(self, lid: int) -> None:
+        """``lid`` left the estimator (the backend removed it): no longer active."""
+        lm = self.landmarks.get(lid)
+        if lm is None:  # never the map's (a variable the backend was given directly)
+            return
+        lm.status = REMOVED
+        self.stats[f"{lm.kind}s_removed"] += 1
 
     # ------------------------------------------------------------------ merges, visibility
 

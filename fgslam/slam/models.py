@@ -243,9 +243,29 @@ def m_estimator(kernel: str, dim: int) -> gtsam.noiseModel.mEstimator.Base | Non
 CHI2_95 = {1: 3.841, 2: 5.991, 3: 7.815}
 
 
+# the smallest variance a noise model takes (sigma 1 um, 1 urad): below every real sensor, so
+# that a model parameter that comes out as zero (a standing robot's odometry) gives a factor
+# of finite information instead of a singular system; the sensors' own floors are larger
+VARIANCE_FLOOR = 1e-12
+
+
+def floored(cov: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``cov`` made symmetric with every eigenvalue at least :data:`VARIANCE_FLOOR`; raises
+    ValueError when it is not finite."""
+    cov = np.asarray(cov, dtype=float)
+    if not np.all(np.isfinite(cov)):
+        raise ValueError(f"a covariance that is not finite: {cov.tolist()}")
+    cov = 0.5 * (cov + cov.T)
+    w, V = np.linalg.eigh(cov)
+    if w.min() >= VARIANCE_FLOOR:
+        return cov
+    return (V * np.maximum(w, VARIANCE_FLOOR)) @ V.T
+
+
 def noise_model(cov: NDArray[np.float64], kernel: str = "none") -> gtsam.noiseModel.Base:
-    """Gaussian noise of covariance ``cov``, robust with ``kernel`` (see :func:`m_estimator`)."""
-    noise = gtsam.noiseModel.Gaussian.Covariance(np.asarray(cov, dtype=float))
+    """Gaussian noise of covariance ``cov`` (:func:`floored`), robust with ``kernel`` (see
+    :func:`m_estimator`)."""
+    noise = gtsam.noiseModel.Gaussian.Covariance(floored(cov))
     est = m_estimator(kernel, len(cov))
     return noise if est is None else gtsam.noiseModel.Robust.Create(est, noise)
 

@@ -112,6 +112,8 @@ class SlamStep:
                 for c in self.loops.try_close(self.k, be, pose):
                     be.add_loop(c.j, c.k, relative_pose(c.pose, c.cov))
         be.commit()
+        for lid in be.take_removed():  # a repaired graph dropped them
+            lc.remove(lid)
         means = be.means()
         pose = be.pose()
         seen: set[int] = set()
