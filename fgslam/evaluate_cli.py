@@ -157,21 +157,26 @@ def evaluate_command(args: argparse.Namespace) -> dict[str, Any]:
         except (OSError, ValueError, KeyError) as exc:
             raise UserError(f"{map_path}: not a map.json ({exc})") from None
         rep["map_error"] = evaluation.map_error(landmarks, true_map)
-    a, r = rep["ate"], rep["rpe"]
-    if r["pairs"] == 0:
-        raise UserError(
-            f"RPE over {r['delta_m']:g} m: the reference never travels that far, nothing to "
-            "compare (give a smaller --rpe-delta)"
-        )
     lines = [
         f"{rep['poses_compared']} poses against the {kind} "
-        f"({rep['poses_outside_reference']} outside its time span)",
-        f"ATE (SE(2)-aligned): RMSE {a['rmse']:.3f} m, mean {a['mean']:.3f} m, "
-        f"max {a['max']:.3f} m, heading RMSE {a['heading_rmse_deg']:.2f} deg",
-        f"RPE over {r['delta_m']:g} m ({r['pairs']} pairs): translation RMSE "
-        f"{r['trans_rmse']:.3f} m (max {r['trans_max']:.3f}), rotation RMSE "
-        f"{r['rot_rmse_deg']:.2f} deg (max {r['rot_max_deg']:.2f})",
+        f"({rep['poses_outside_reference']} outside its time span)"
     ]
+    if "ate" in rep:
+        a = rep["ate"]
+        lines.append(
+            f"ATE (SE(2)-aligned): RMSE {a['rmse']:.3f} m, mean {a['mean']:.3f} m, "
+            f"max {a['max']:.3f} m, heading RMSE {a['heading_rmse_deg']:.2f} deg"
+        )
+    if "rpe" in rep:
+        r = rep["rpe"]
+        lines.append(
+            f"RPE over {r['delta_m']:g} m ({r['pairs']} pairs): translation RMSE "
+            f"{r['trans_rmse']:.3f} m (max {r['trans_max']:.3f}), rotation RMSE "
+            f"{r['rot_rmse_deg']:.2f} deg (max {r['rot_max_deg']:.2f})"
+        )
+    for name, why in rep.get("not_evaluated", {}).items():
+        hint = " (give a smaller --rpe-delta)" if name == "rpe" and "travels" in why else ""
+        lines.append(f"warning: {name} not evaluated: {why}{hint}")
     if "nees" in rep:
         lines.append(
             f"NEES: mean {rep['nees']['mean']:.2f} (3 dof), "

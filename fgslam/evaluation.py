@@ -6,6 +6,7 @@ Poses are (x, y, theta) in m and rad; times in s.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +14,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.stats import chi2
 
 from factors.geometry import wrap_angles
+from fgslam.errors import EvaluationError
 
 
 def interpolate_poses(t_ref: ArrayLike, poses: ArrayLike, t: ArrayLike) -> NDArray[np.float64]:
@@ -32,16 +34,56 @@ def interpolate_poses(t_ref: ArrayLike, poses: ArrayLike, t: ArrayLike) -> NDArr
     return out
 
 
+def _poses(a: ArrayLike, name: str, cols: int = 3) -> NDArray[np.float64]:
+    """``a`` as an (n, ``cols``) float array (an empty input: (0, ``cols``)); EvaluationError
+    naming ``name`` for any other shape or for non-finite values."""
+    try:
+        p = np.asarray(a, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise EvaluationError(f"{name}: not an array of poses ({exc})") from None
+    if p.size == 0:
+        return p.reshape(0, cols)
+    if p.ndim != 2 or p.shape[1] != cols:
+        raise EvaluationError(f"{name}: expected an (n, {cols}) array of poses, got {p.shape}")
+    bad = int(np.count_nonzero(~np.isfinite(p).all(axis=1)))
+    if bad:
+        raise EvaluationError(f"{name}: {bad} of {len(p)} poses are not finite")
+    return p
+
+
+def _pair(est: ArrayLike, ref: ArrayLike, cols: int = 3) -> tuple[NDArray, NDArray]:
+    """Estimate and reference, checked by :func:`_poses` and for matching pose by pose."""
+    e, r = _poses(est, "estimate", cols), _poses(ref, "reference", cols)
+    if len(e) != len(r):
+        raise EvaluationError(
+            f"estimate has {len(e)} poses, reference {len(r)}: they must be matched pose by "
+            "pose (evaluation.match_times)"
+        )
+    return e, r
+
+
 def align_se2(est: ArrayLike, ref: ArrayLike) -> tuple[float, NDArray[np.float64]]:
-    """The rotation angle and translation that best map estimated positions onto reference
-    positions in the least-squares sense (Umeyama/Horn in 2-D, no scale)."""
-    P = np.asarray(est, dtype=float)[:, :2]
-    Q = np.asarray(ref, dtype=float)[:, :2]
-    mp, mq = P.mean(axis=0), Q.mean(axis=0)
-    A, B = P - mp, Q - mq
-    angle = math.atan2(float(np.sum(A[:, 0] * B[:, 1] - A[:, 1] * B[:, 0])), float(np.sum(A * B)))
-    c, s = math.cos(angle), math.sin(angle)
-    t = mq - np.array([c * mp[0] - s * mp[1], s * mp[0] + c * mp[1]])
+    """The rotation angle (rad) and translation (m) that best map estimated positions onto
+    reference positions in the least-squares sense (Umeyama/Horn in 2-D, no scale).
+
+    ``est``, ``ref``: (n, 3) poses (or (n, 2) positions), matched row by row, n >= 2.
+    EvaluationError for other shapes, fewer than 2 poses (no alignment), non-finite values
+    or positions so large that the sums overflow."""
+    cols = 2 if np.ndim(est) == 2 and np.shape(est)[1] == 2 else 3
+    P, Q = (p[:, :2] for p in _pair(est, ref, cols))
+    if len(P) < 2:
+        raise EvaluationError(f"{len(P)} pose(s): at least 2 are needed for an alignment")
+    with np.errstate(over="ignore", invalid="ignore"):
+        mp, mq = P.mean(axis=0), Q.mean(axis=0)
+        A, B = P - mp, Q - mq
+        angle = math.atan2(
+            float(np.sum(A[:, 0] * B[:, 1] - A[:, 1] * B[:, 0])), float(np.sum(A * B))
+        )
+        c, s = math.cos(angle), math.sin(angle)
+        t = mq - np.array([c * mp[0] - s * mp[1], s * mp[0] + c * mp[1]])
+    if not (math.isfinite(angle) and np.isfinite(t).all()):
+        big = float(np.max(np.abs(np.vstack([P, Q]))))
+        raise EvaluationError(f"the alignment overflows (positions up to {big:.3g} m)")
     return angle, t
 
 
@@ -56,28 +98,67 @@ def apply_se2(angle: float, t: ArrayLike, poses: ArrayLike) -> NDArray[np.float6
 
 
 def ate(est: ArrayLike, ref: ArrayLike, align: bool = True) -> dict[str, float]:
-    """Absolute trajectory error of positions (m), after SE(2) alignment by default."""
-    est = np.asarray(est, dtype=float)
-    ref = np.asarray(ref, dtype=float)
+    """Absolute trajectory error of positions (m: RMSE, mean, max) and heading RMSE (deg) of
+    (n, 3) poses matched row by row, after SE(2) alignment by default (n >= 2; without
+    alignment n >= 1). EvaluationError for shapes that differ, too few or non-finite poses
+    and errors that overflow."""
+    est, ref = _pair(est, ref)
+    if not len(est):
+        raise EvaluationError("no poses to compare")
     if align:
         est = apply_se2(*align_se2(est, ref), est)
-    err = np.hypot(est[:, 0] - ref[:, 0], est[:, 1] - ref[:, 1])
-    return {
-        "rmse": float(np.sqrt(np.mean(err**2))),
-        "mean": float(err.mean()),
-        "max": float(err.max()),
-        "heading_rmse_deg": float(
-            np.degrees(np.sqrt(np.mean(wrap_angles(est[:, 2] - ref[:, 2]) ** 2)))
-        ),
-    }
+    with np.errstate(over="ignore", invalid="ignore"):
+        err = np.hypot(est[:, 0] - ref[:, 0], est[:, 1] - ref[:, 1])
+        out = {
+            "rmse": float(np.sqrt(np.mean(err**2))),
+            "mean": float(err.mean()),
+            "max": float(err.max()),
+            "heading_rmse_deg": float(
+                np.degrees(np.sqrt(np.mean(wrap_angles(est[:, 2] - ref[:, 2]) ** 2)))
+            ),
+        }
+    if not all(math.isfinite(v) for v in out.values()):
+        raise EvaluationError(f"the ATE overflows (errors up to {float(err.max()):.3g} m)")
+    return out
 
 
 def position_errors(est: ArrayLike, ref: ArrayLike, align: bool = True) -> NDArray[np.float64]:
-    est = np.asarray(est, dtype=float)
-    ref = np.asarray(ref, dtype=float)
+    """Position error (m) of each of the (n, 3) poses matched row by row, after SE(2)
+    alignment by default; EvaluationError as :func:`ate`."""
+    est, ref = _pair(est, ref)
     if align:
         est = apply_se2(*align_se2(est, ref), est)
-    return np.hypot(est[:, 0] - ref[:, 0], est[:, 1] - ref[:, 1])
+    with np.errstate(over="ignore", invalid="ignore"):
+        return np.hypot(est[:, 0] - ref[:, 0], est[:, 1] - ref[:, 1])
+
+
+def ate_at_times(
+    t_est: ArrayLike,
+    est: ArrayLike,
+    t_ref: ArrayLike,
+    ref: ArrayLike,
+    max_gap: float | None = None,
+) -> dict[str, float]:
+    """:func:`ate` (SE(2)-aligned) of poses ``est`` at times ``t_est`` (s) against the
+    reference (``t_ref``, ``ref``) interpolated at their times, over the poses within the
+    reference's time span (:func:`match_times`); with ``poses_compared`` and
+    ``poses_outside_reference``. EvaluationError when fewer than 2 poses lie within it (no
+    alignment), or as :func:`ate`."""
+    t_est = np.asarray(t_est, dtype=float).reshape(-1)
+    est = _poses(est, "estimate")
+    if len(t_est) != len(est):
+        raise EvaluationError(f"{len(t_est)} times for {len(est)} estimated poses")
+    mask, ref_m = match_times(t_est, t_ref, ref, max_gap)
+    n = int(mask.sum())
+    if n < 2:
+        raise EvaluationError(
+            f"{n} of {len(est)} poses within the reference's time span: no alignment"
+        )
+    return {
+        **ate(est[mask], ref_m),
+        "poses_compared": n,
+        "poses_outside_reference": len(est) - n,
+    }
 
 
 def scale_about_start(est: ArrayLike, ref: ArrayLike) -> tuple[NDArray[np.float64], float]:
@@ -95,12 +176,27 @@ def scale_about_start(est: ArrayLike, ref: ArrayLike) -> tuple[NDArray[np.float6
 
 
 def nees(est: ArrayLike, cov: ArrayLike, ref: ArrayLike) -> dict[str, float]:
-    """Pose NEES e^T P^-1 e (e = estimate - reference, heading wrapped; 3 dof): its mean and
-    the fraction of poses inside the two-sided 95 % chi-square interval."""
-    est, cov, ref = (np.asarray(a, dtype=float) for a in (est, cov, ref))
+    """Pose NEES e^T P^-1 e (e = estimate - reference, heading wrapped; 3 dof) of (n, 3) poses
+    matched row by row with their (n, 3, 3) world-frame covariances: its mean and the fraction
+    of poses inside the two-sided 95 % chi-square interval. EvaluationError for shapes that
+    differ, no poses, non-finite values or a singular covariance."""
+    est, ref = _pair(est, ref)
+    cov = np.asarray(cov, dtype=float)
+    if not len(est):
+        raise EvaluationError("no poses to compare")
+    if cov.shape != (len(est), 3, 3):
+        raise EvaluationError(f"expected {len(est)} 3x3 covariances, got shape {cov.shape}")
+    if not np.isfinite(cov).all():
+        raise EvaluationError("a pose covariance is not finite")
     e = est - ref
     e[:, 2] = wrap_angles(e[:, 2])
-    vals = np.einsum("ni,ni->n", e, np.linalg.solve(cov, e[..., None])[..., 0])
+    try:
+        with np.errstate(over="ignore", invalid="ignore"):
+            vals = np.einsum("ni,ni->n", e, np.linalg.solve(cov, e[..., None])[..., 0])
+    except np.linalg.LinAlgError:
+        raise EvaluationError("a pose covariance is singular") from None
+    if not np.isfinite(vals).all():
+        raise EvaluationError("the NEES overflows (covariances near singular)")
     lo, hi = chi2.ppf([0.025, 0.975], 3)
     return {
         "mean": float(vals.mean()),
@@ -180,12 +276,9 @@ def rpe(est: ArrayLike, ref: ArrayLike, delta: float = 1.0) -> dict[str, float]:
     estimated motion i -> j against the reference motion, inverse(ref_ij) * est_ij. Returns
     RMSE, mean and max of its translation (m) and of its rotation (deg), and the number of
     pairs (0 when the reference never travels ``delta``: the other values are then NaN)."""
-    est = np.asarray(est, dtype=float)
-    ref = np.asarray(ref, dtype=float)
-    if est.shape != ref.shape:
-        raise ValueError(f"estimate {est.shape} and reference {ref.shape} differ in shape")
+    est, ref = _pair(est, ref)
     if delta <= 0:
-        raise ValueError(f"delta must be positive, got {delta}")
+        raise EvaluationError(f"delta must be positive, got {delta}")
     dist = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(ref[:, :2], axis=0).T))])
     i = np.arange(len(ref))
     j = np.searchsorted(dist, dist + delta - 1e-12)
@@ -229,12 +322,15 @@ def match_times(
     """The estimated poses whose time lies within the reference's time span (and, with
     ``max_gap``, within ``max_gap`` s of a reference pose), and the reference interpolated at
     their times: (mask over t_est, reference poses at t_est[mask])."""
-    t_est = np.asarray(t_est, dtype=float)
-    t_ref = np.asarray(t_ref, dtype=float)
+    t_est = np.asarray(t_est, dtype=float).reshape(-1)
+    t_ref = np.asarray(t_ref, dtype=float).reshape(-1)
     if len(t_ref) == 0:
         return np.zeros(len(t_est), dtype=bool), np.zeros((0, 3))
+    ref = _poses(ref, "reference")
+    if len(ref) != len(t_ref):
+        raise EvaluationError(f"{len(t_ref)} reference times for {len(ref)} reference poses")
     if np.any(np.diff(t_ref) < 0):
-        raise ValueError("reference times must not go backwards")
+        raise EvaluationError("reference times must not go backwards")
     mask = (t_est >= t_ref[0]) & (t_est <= t_ref[-1])
     if max_gap is not None and len(t_ref):
         k = np.clip(np.searchsorted(t_ref, t_est), 1, max(len(t_ref) - 1, 1))
@@ -254,27 +350,55 @@ def evaluate_trajectory(
     covs: ArrayLike | None = None,
     max_gap: float | None = None,
 ) -> dict:
-    """ATE (after SE(2) alignment), RPE over ``rpe_delta`` m, and with ``covs`` (world-frame
-    3x3 per estimated pose) the NEES, of an estimate against a reference matched by time."""
+    """ATE (after SE(2) alignment, and without), RPE over ``rpe_delta`` m, and with ``covs``
+    (world-frame 3x3 per estimated pose) the NEES, of an estimate (poses in m, rad at times in
+    s) against a reference matched by time. Any number of poses: a metric that cannot be
+    computed (fewer than 2 poses within the reference's time span: no alignment; a reference
+    that never travels ``rpe_delta``; non-finite poses) is left out, its reason under
+    ``not_evaluated``."""
+    t_est = np.asarray(t_est, dtype=float).reshape(-1)
     est = np.asarray(est, dtype=float).reshape(-1, 3)
+    if len(t_est) != len(est):
+        raise EvaluationError(f"{len(t_est)} times for {len(est)} estimated poses")
     mask, ref_m = match_times(t_est, t_ref, ref, max_gap)
     n = int(mask.sum())
-    if n < 2:
-        raise ValueError(
-            f"only {n} estimated poses fall within the reference's time span: nothing to compare"
-        )
     e = est[mask]
-    out: dict = {
-        "poses_compared": n,
-        "poses_outside_reference": int(len(est) - n),
-        "ate": ate(e, ref_m),
-        "ate_unaligned": ate(e, ref_m, align=False),
-        "rpe": rpe(e, ref_m, rpe_delta),
-    }
+    out: dict = {"poses_compared": n, "poses_outside_reference": int(len(est) - n)}
+    few = f"{n} of {len(est)} poses within the reference's time span"
+
+    def aligned() -> dict:
+        if n < 2:
+            raise EvaluationError(f"{few}: no alignment")
+        return ate(e, ref_m)
+
+    def relative() -> dict:
+        if n < 2:
+            raise EvaluationError(f"{few}: no pair of poses")
+        r = rpe(e, ref_m, rpe_delta)
+        if r["pairs"] == 0:
+            raise EvaluationError(
+                f"the reference never travels {rpe_delta:g} m: no pair (a smaller delta may)"
+            )
+        return r
+
+    add_metric(out, "ate", aligned)
+    add_metric(out, "ate_unaligned", lambda: ate(e, ref_m, align=False))
+    add_metric(out, "rpe", relative)
     if covs is not None:
-        c = np.asarray(covs, dtype=float).reshape(-1, 3, 3)[mask]
-        out["nees"] = nees(e, c, ref_m)
+        c = np.asarray(covs, dtype=float).reshape(-1, 3, 3)
+        if len(c) != len(est):
+            raise EvaluationError(f"{len(c)} covariances for {len(est)} estimated poses")
+        add_metric(out, "nees", lambda: nees(e, c[mask], ref_m))
     return out
+
+
+def add_metric(out: dict, key: str, compute: Callable[[], object]) -> None:
+    """``out[key] = compute()``; if it raises EvaluationError (the metric cannot be computed
+    from these poses), its message goes under ``out["not_evaluated"][key]`` instead."""
+    try:
+        out[key] = compute()
+    except EvaluationError as exc:
+        out.setdefault("not_evaluated", {})[key] = str(exc)
 
 
 def map_error(landmarks: list[dict], true_map: dict) -> dict:
