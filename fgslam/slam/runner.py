@@ -79,7 +79,9 @@ class SlamResult:
     poses: NDArray[np.float64]  # final estimate per keyframe (smoothed for graphs)
     covs: list[NDArray[np.float64] | None]
     filtered: NDArray[np.float64]  # the estimate available at each keyframe's time
-    odometry: NDArray[np.float64]  # odometry alone at the keyframes, from the same start
+    # odometry alone at the keyframes of the pass, from the same start: every keyframe the
+    # front end made, so more than ``times`` when this backend failed mid-run (partial)
+    odometry: NDArray[np.float64]
     landmarks: dict[int, Landmark]
     means: dict[int, NDArray[np.float64]]
     landmark_covs: dict[int, NDArray[np.float64]]
@@ -101,10 +103,30 @@ class SlamResult:
     # the calibration errors estimated: {"parameters": names (Calibration), "estimate": [...],
     # "sigma": [...] or None}; None when not estimated
     calibration: dict | None = None
+    # the times (s) of ``filtered`` and of ``odometry``; None: ``times``
+    filtered_times: NDArray[np.float64] | None = None
+    odometry_times: NDArray[np.float64] | None = None
 
     @property
     def has_truth(self) -> bool:
         return len(self.truth) > 1
+
+    def tracks(self) -> dict[str, tuple[NDArray[np.float64], NDArray[np.float64]]]:
+        """The run's trajectories, each with its own times: (times in s, (n, 3) world poses in
+        m, rad) of the final estimate ("estimate"), the estimate as available at each
+        keyframe ("online") and odometry alone ("odometry"). Their lengths may differ (a
+        backend that failed mid-run has fewer keyframes than the odometry track)."""
+        return {
+            "estimate": (self.times, self.poses),
+            "online": (
+                self.times if self.filtered_times is None else self.filtered_times,
+                self.filtered,
+            ),
+            "odometry": (
+                self.times if self.odometry_times is None else self.odometry_times,
+                self.odometry,
+            ),
+        }
 
     @property
     def every_scan(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -130,6 +152,7 @@ class _Session(SlamStep):
         be = make_backend(backend, motion_gate_p, calibration, sonar_timing)
         super().__init__(be, map_params, loops)
         self.failed: dict | None = None
+        self.filtered_times: list[float] = []  # s, one per entry of ``filtered``
 
     @property
     def mapper(self) -> Lifecycle:
@@ -142,6 +165,8 @@ class _Session(SlamStep):
             self.keyframe(sf.t, sf.features, pre, pose0, scan=scan, points=sf.points, speed=speed)
         except BackendError as exc:
             self.failed = {"keyframe": self.k, "t": float(sf.t), "error": str(exc)}
+        else:  # a keyframe that completed added its pose to ``filtered``
+            self.filtered_times.append(float(sf.t))
 
 
 def run_slam(
@@ -412,6 +437,7 @@ class SlamPipeline:
             sess,
             name,
             kf_odo=self._kf_odo,
+            kf_times=self.kf_times,
             truth_t=self.truth_t,
             truth=self.truth,
             stats=self.stats,
@@ -445,6 +471,7 @@ class SlamPipeline:
         shared = total - sum(s.wall for s in self.sessions.values())
         common = dict(
             kf_odo=self._kf_odo,
+            kf_times=self.kf_times,
             truth_t=self.truth_t,
             truth=self.truth,
             stats=self.stats,
@@ -511,6 +538,7 @@ def _result(
     be=None,
     *,
     kf_odo,
+    kf_times,
     truth_t,
     truth,
     stats,
@@ -557,7 +585,9 @@ def _result(
         poses=poses,
         covs=[p[2] for p in traj],
         filtered=np.array(sess.filtered).reshape(-1, 3),
+        filtered_times=np.array(sess.filtered_times, dtype=float),
         odometry=np.array(kf_odo).reshape(-1, 3),
+        odometry_times=np.array(kf_times, dtype=float),
         landmarks={lid: lm for lid, lm in sess.mapper.landmarks.items() if lm.active},
         means=means,
         landmark_covs=covs,
