@@ -10,6 +10,7 @@ import argparse
 import json
 import os
 import sys
+import warnings
 from collections import Counter
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -22,7 +23,7 @@ from fgslam.choices import (
     SONAR_CALIBRATION_CHOICES,
     SONAR_TIMING_CHOICES,
 )
-from fgslam.errors import UserError
+from fgslam.errors import OutputWarning, RunWarning, UserError
 
 EPILOG = """\
 Typical use:
@@ -215,6 +216,13 @@ def _cmd_run(args: argparse.Namespace) -> int:
         bar.close()
     extra, notes = _input_notes(reader, tap, [res])
     extra["config_source"] = cfg.source
+    from fgslam.dense import write_dense_trajectory
+
+    def dense(path: Path) -> int:
+        return write_dense_trajectory(
+            path, *res.every_scan, res.odometry_samples, cfg.odometry.wheelbase
+        )
+
     rep = write_outputs(
         res,
         args.out,
@@ -223,14 +231,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         world=_log_world(reader),
         scans=tap.sample.scans,
         cfg=cfg,
-    )
-    from fgslam.dense import write_dense_trajectory
-
-    write_dense_trajectory(
-        Path(args.out) / "trajectory_dense.tum",
-        *res.every_scan,
-        res.odometry_samples,
-        cfg.odometry.wheelbase,
+        more={"trajectory_dense.tum": dense},
     )
     for line in notes:
         print(line)
@@ -369,10 +370,17 @@ def _input_notes(reader, tap: _Tap, results: list) -> tuple[dict, list[str]]:
 
 def _report_partial(rep: dict, out: str) -> int:
     """Exit status of a run: 1 when its backend failed mid-run (outputs written up to the
-    last good keyframe), with a message saying so; 0 otherwise."""
+    last good keyframe) or an output could not be written (``output_errors``; each was
+    warned about), with a message saying so; 0 otherwise."""
+    failed = [e["output"] for e in rep.get("output_errors", [])]
+    if failed:
+        print(
+            f"fgslam: error: not written: {', '.join(failed)} (the other outputs in {out} are)",
+            file=sys.stderr,
+        )
     part = rep.get("partial")
     if not part:
-        return 0
+        return 1 if failed else 0
     t = part.get("t")
     when = f" (t = {t:.2f} s)" if isinstance(t, int | float) else ""
     print(
@@ -395,18 +403,22 @@ def _reader_options(args: argparse.Namespace) -> dict:
 
 
 def _print_summary(rep: dict, out: str) -> None:
-    lm = rep["landmarks"]
-    msg = (
-        f"{rep['backend']}/{rep['sensors']}: {rep['poses']} poses, "
-        f"{rep['landmarks_total']} landmarks ({', '.join(f'{v} {k}s' for k, v in lm.items())}), "
-        f"{rep['wall_time_s']:.1f} s for {rep['log_duration_s']:.1f} s of log"
-    )
-    if "ate" in rep:
+    """The run in a few lines: poses, landmarks, time, ATE (or why there is none)."""
+    lm = rep.get("landmarks", {})
+    msg = f"{rep['backend']}/{rep['sensors']}: {rep['poses']} poses"
+    if "landmarks_total" in rep:
         msg += (
-            f"; ATE RMSE {rep['ate']['rmse']:.3f} m (max {rep['ate']['max']:.3f} m, "
-            f"odometry alone {rep['ate_odometry']['rmse']:.3f} m)"
+            f", {rep['landmarks_total']} landmarks "
+            f"({', '.join(f'{v} {k}s' for k, v in lm.items())}), "
+            f"{rep['wall_time_s']:.1f} s for {rep['log_duration_s']:.1f} s of log"
         )
+    if "ate" in rep:
+        odo = rep.get("ate_odometry")
+        alone = f", odometry alone {odo['rmse']:.3f} m" if odo else ""
+        msg += f"; ATE RMSE {rep['ate']['rmse']:.3f} m (max {rep['ate']['max']:.3f} m{alone})"
     print(msg)
+    for name, why in rep.get("not_evaluated", {}).items():
+        print(f"note: {name} not evaluated: {why}")
     cal = rep.get("calibration")
     if cal:  # relative errors in 1e-3, the laser offset in mm
         sig = cal.get("sigma") or [None] * len(cal["parameters"])
@@ -415,7 +427,9 @@ def _print_summary(rep: dict, out: str) -> None:
             for n, v, s in zip(cal["parameters"], cal["estimate"], sig, strict=True)
         ]
         print(f"calibration (1e-3; laser_offset in mm): {', '.join(cells)}")
-    print(f"wrote {out}/trajectory.tum, map.json, report.json, map.png")
+    failed = {e["output"] for e in rep.get("output_errors", [])}
+    names = ["trajectory.tum", "map.json", "report.json", "map.png"]
+    print(f"wrote {out}/{', '.join(n for n in names if n not in failed)}")
 
 
 def _cmd_compare(args: argparse.Namespace) -> int:
@@ -427,8 +441,18 @@ def _cmd_compare(args: argparse.Namespace) -> int:
         args.association,
         _config_options(args),
     )
-    print((Path(args.out) / "comparison.md").read_text(), end="")
-    print(f"wrote {args.out}/comparison.json, comparison.md, comparison.png and one folder per run")
+    names = ("comparison.json", "comparison.md", "comparison.png")
+    written = [n for n in names if (Path(args.out) / n).exists()]  # a failed one is removed
+    if "comparison.md" in written:
+        print((Path(args.out) / "comparison.md").read_text(), end="")
+    print(f"wrote {args.out}/{', '.join(written)} and one folder per run")
+    failed = [n for n in names if n not in written] + [
+        f"{r['backend']}-{r['sensors']}/{e['output']}"
+        for r in rows
+        for e in r.get("output_errors", [])
+    ]
+    if failed:
+        print(f"fgslam compare: error: not written: {', '.join(failed)}", file=sys.stderr)
     partial = [f"{r['backend']}/{r['sensors']}" for r in rows if r.get("partial")]
     if partial:
         print(
@@ -436,8 +460,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
             "the run up to the last good keyframe (report.json: partial)",
             file=sys.stderr,
         )
-        return 1
-    return 0 if rows else 1
+    return 0 if rows and not failed and not partial else 1
 
 
 def _compare(
@@ -1152,6 +1175,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 141
 
 
+def _one_line_warning(command: str, show: Callable) -> Callable:
+    """``warnings.showwarning`` that prints an OutputWarning (an output not written) or a
+    RunWarning (something odd the run survived) as one line, ``fgslam COMMAND: warning:
+    ...``, and leaves other warnings to ``show``."""
+
+    def showwarning(message, category, filename, lineno, file=None, line=None) -> None:
+        if issubclass(category, (OutputWarning, RunWarning)):
+            print(f"fgslam {command}: warning: {message}", file=sys.stderr)
+        else:
+            show(message, category, filename, lineno, file, line)
+
+    return showwarning
+
+
 def _main(argv: Sequence[str] | None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -1162,7 +1199,11 @@ def _main(argv: Sequence[str] | None) -> int:
         return 0
     try:
         _check_outputs(args)
-        status = func(args)
+        with warnings.catch_warnings():
+            warnings.simplefilter("always", OutputWarning)
+            warnings.simplefilter("always", RunWarning)
+            warnings.showwarning = _one_line_warning(args.command, warnings.showwarning)
+            status = func(args)
         sys.stdout.flush()  # a closed pipe shows here, not at exit
         return status
     except UserError as exc:

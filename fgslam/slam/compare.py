@@ -20,7 +20,7 @@ import numpy as np
 from fgslam import evaluation, safeio
 from fgslam.config import RobotConfig, check_against_log, override_config, with_options
 from fgslam.readers import open_log
-from fgslam.slam.outputs import ScanSample, write_outputs
+from fgslam.slam.outputs import OutputGuard, ScanSample, write_outputs
 from fgslam.slam.runner import BACKENDS, SENSORS, SlamResult, run_backends
 
 NEES_FLAG = 3.0  # a NEES mean beyond this factor of its dof (or below 1/factor) is flagged
@@ -130,12 +130,19 @@ def compare(
             cfg=cfg,
         )
         rows.append(rep)
-    safeio.write_json(out / "comparison.json", rows)
-    header = describe_run(
-        str(log), results, cfg, info.get("events", {}), truth_kind, info.get("reader")
-    )
-    safeio.write_text(out / "comparison.md", header + markdown_table(rows))
-    plot_comparison(results, out / "comparison.png", world=world)
+    # each on its own, as a run's outputs: one that fails is warned about, the others written
+    guard = OutputGuard(out)
+    guard.write("comparison.json", lambda p: safeio.write_json(p, rows))
+    guard.write("comparison.png", lambda p: plot_comparison(results, p, world=world))
+
+    def table(path: Path) -> None:
+        header = describe_run(
+            str(log), results, cfg, info.get("events", {}), truth_kind, info.get("reader")
+        )
+        failed = "".join(f"\nNot written: {e['output']} ({e['error']}).\n" for e in guard.errors)
+        safeio.write_text(path, header + markdown_table(rows) + failed)
+
+    guard.write("comparison.md", table)
     return rows
 
 
@@ -260,7 +267,7 @@ def markdown_table(rows: list[dict[str, Any]]) -> str:
             f"| {name} | {r['sensors']} | {f(ate.get('rmse'))} | {f(ate.get('max'))} | "
             f"{f(fin)} | {nees_s} | {lm.get('line', 0)} | {lm.get('corner', 0)} | "
             f"{lm.get('point', 0)} | {f(r.get('realtime_factor'), 1)} | "
-            f"{f(r['keyframe_latency_ms']['p95'], 1)} |"
+            f"{f(r.get('keyframe_latency_ms', {}).get('p95'), 1)} |"
         )
     odo = next((r["ate_odometry"] for r in rows if "ate_odometry" in r), None)
     tail = (
@@ -275,7 +282,21 @@ def markdown_table(rows: list[dict[str, Any]]) -> str:
                 f"\n{r['backend']}/{r['sensors']} is PARTIAL: the backend failed at keyframe "
                 f"{part.get('keyframe')} (t = {part.get('t')}): {part.get('error')}\n"
             )
+        for e in r.get("output_errors", []):
+            tail += f"\n{r['backend']}/{r['sensors']}: {e['output']} not written: {e['error']}\n"
     return head + "\n".join(lines) + "\n" + tail
+
+
+def _errors_over_time(res: SlamResult, track: str) -> tuple[np.ndarray, np.ndarray]:
+    """Times (s) and unaligned position errors (m; NaN where a pose is not finite) of one of
+    the run's tracks (:meth:`SlamResult.tracks`) against its reference, over its poses within
+    the reference's time span."""
+    t, poses = res.tracks()[track]
+    mask, ref = evaluation.match_times(t, res.truth_t, res.truth)
+    p = np.asarray(poses, dtype=float)[mask]
+    with np.errstate(over="ignore", invalid="ignore"):
+        err = np.hypot(p[:, 0] - ref[:, 0], p[:, 1] - ref[:, 1])
+    return np.asarray(t)[mask], np.where(np.isfinite(err), err, np.nan)
 
 
 def plot_comparison(results: list[SlamResult], path: Path, world: Any = None) -> dict[str, Any]:
@@ -286,6 +307,9 @@ def plot_comparison(results: list[SlamResult], path: Path, world: Any = None) ->
     xy = [r.poses[:, :2] for r in results if len(r.poses)]
     xy += [r.truth[:, :2] for r in results[:1] if r.has_truth]
     allxy = np.concatenate(xy) if xy else np.zeros((1, 2))
+    allxy = allxy[np.isfinite(allxy).all(axis=1)]  # a diverged pose must not set the axes
+    if not len(allxy):
+        allxy = np.zeros((1, 2))
     lo, hi = allxy.min(axis=0), allxy.max(axis=0)
     pad = max(1.0, 0.06 * float(np.max(hi - lo)))
     lo, hi = lo - pad, hi + pad
@@ -308,17 +332,16 @@ def plot_comparison(results: list[SlamResult], path: Path, world: Any = None) ->
     for res in results:
         if res.has_truth and not truth_drawn:
             ax1.plot(res.truth[:, 0], res.truth[:, 1], "-", color="0.5", lw=2, label="truth")
-            ref = evaluation.interpolate_poses(res.truth_t, res.truth, res.times)
-            err = evaluation.position_errors(res.odometry, ref, align=False)
-            ax2.plot(res.times, err, ":", color="0.3", label="odometry only")
+            t, err = _errors_over_time(res, "odometry")
+            ax2.plot(t, err, ":", color="0.3", label="odometry only")
             truth_drawn = True
         label = f"{res.backend} / {res.sensors}"
         ax1.plot(res.poses[:, 0], res.poses[:, 1], "-", lw=0.9, label=label)
-        if res.has_truth and len(res.times):
-            ref = evaluation.interpolate_poses(res.truth_t, res.truth, res.times)
-            err = evaluation.position_errors(res.poses, ref, align=False)
-            worst = max(worst, float(np.nanmax(err)) if len(err) else 0.0)
-            ax2.plot(res.times, err, "-", lw=0.9, label=label)
+        if res.has_truth:
+            t, err = _errors_over_time(res, "estimate")
+            err_ok = err[np.isfinite(err)]
+            worst = max(worst, float(err_ok.max()) if len(err_ok) else 0.0)
+            ax2.plot(t, err, "-", lw=0.9, label=label)
     ax1.set_xlim(lo[0], hi[0])
     ax1.set_ylim(lo[1], hi[1])
     ax1.set_aspect("equal")
@@ -332,7 +355,8 @@ def plot_comparison(results: list[SlamResult], path: Path, world: Any = None) ->
     ax2.set_ylabel("position error (m)")
     if worst > 0:
         ax2.set_ylim(0.0, 1.15 * worst)
-    ax2.legend(fontsize=7, ncol=4)
+    if ax2.get_legend_handles_labels()[0]:  # no reference: no error curves
+        ax2.legend(fontsize=7, ncol=4)
     ax2.set_title(
         "position error against the truth (map anchored at the first true pose; axis clipped "
         "to the backends' largest error)"

@@ -5,14 +5,20 @@ has ground truth, so errors against the truth need no alignment; the ATE is repo
 SE(2) alignment all the same, as is customary. Every file is written atomically (a temporary
 file in the same folder, renamed), so a folder never holds half a file. A result whose
 backend failed mid-run (``stats["partial"]``) is written all the same, marked partial.
+
+Outputs never stop a run's end: each is written on its own (:class:`OutputGuard`), and a
+metric that cannot be computed is left out of report.json with its reason.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
+import warnings
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import matplotlib
 
@@ -24,10 +30,12 @@ from matplotlib.patches import Ellipse
 from factors.geometry import wrap_angle
 from fgslam import evaluation, safeio
 from fgslam.config import RobotConfig
+from fgslam.errors import EvaluationError, OutputWarning
 from fgslam.events import Event, LaserScan
 from fgslam.slam.runner import SlamResult
 
 MAX_MAP_POINTS = 150_000  # laser points drawn in map.png at most
+_T = TypeVar("_T")
 
 
 class ScanSample:
@@ -163,6 +171,9 @@ def map_error(res: SlamResult, true_map: dict[str, Any]) -> dict[str, Any]:
 
 
 def report_dict(res: SlamResult, true_map: dict[str, Any] | None = None) -> dict[str, Any]:
+    """report.json: counts, timing, statistics and, against the log's reference poses, the
+    metrics of :func:`reference_metrics` (those that cannot be computed, and why, under
+    ``not_evaluated``)."""
     lat = np.array(res.latencies) * 1000 if res.latencies else np.zeros(1)
     kinds: dict[str, int] = {}
     for lm in res.landmarks.values():
@@ -196,22 +207,58 @@ def report_dict(res: SlamResult, true_map: dict[str, Any] | None = None) -> dict
         rep["calibration"] = dict(res.calibration)
     if res.stats.get("partial"):
         rep["partial"] = dict(res.stats["partial"])
-    if res.has_truth and len(res.times):
-        ref = evaluation.interpolate_poses(res.truth_t, res.truth, res.times)
-        rep["ate"] = evaluation.ate(res.poses, ref)
-        rep["ate_online"] = evaluation.ate(res.filtered, ref)
-        rep["ate_odometry"] = evaluation.ate(res.odometry, ref)
-        e = res.poses[-1] - ref[-1]
-        rep["final_pose_error"] = {
+    if res.has_truth:
+        rep.update(reference_metrics(res, true_map))
+    else:
+        rep["not_evaluated"] = {
+            "ate": f"the log has {len(res.truth)} reference poses (ground truth or a "
+            "reference trajectory): at least 2 are needed"
+        }
+    return rep
+
+
+def reference_metrics(res: SlamResult, true_map: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The run against its reference (ground truth or a log's reference poses): the ATE of
+    the final estimate ("ate"), of the online one ("ate_online") and of odometry alone
+    ("ate_odometry"), each over its own poses within the reference's time span (the
+    reference interpolated at their times; SE(2)-aligned), the unaligned error of the last
+    such pose ("final_pose_error"), the NEES of those poses and the map error. A metric that
+    cannot be computed (fewer than 2 poses within the reference: no alignment; non-finite
+    poses) is left out, its reason under ``not_evaluated``."""
+    out: dict[str, Any] = {}
+    tracks = res.tracks()
+    for key, track in (("ate", "estimate"), ("ate_online", "online"), ("ate_odometry", "odometry")):
+        t, poses = tracks[track]
+        evaluation.add_metric(
+            out, key, lambda t=t, p=poses: evaluation.ate_at_times(t, p, res.truth_t, res.truth)
+        )
+    mask, ref = evaluation.match_times(res.times, res.truth_t, res.truth)
+    idx = np.flatnonzero(mask)
+    if not len(idx):
+        out.setdefault("not_evaluated", {})["final_pose_error"] = (
+            f"none of the {len(res.times)} poses lies within the reference's time span"
+        )
+        return out
+
+    def final() -> dict[str, float]:
+        e = res.poses[idx[-1]] - ref[-1]
+        if not np.isfinite(e).all():
+            raise EvaluationError(f"the last pose compared is not finite: {res.poses[idx[-1]]}")
+        return {
             "position_m": float(math.hypot(e[0], e[1])),
             "heading_deg": float(math.degrees(abs(wrap_angle(e[2])))),
+            "t": float(res.times[idx[-1]]),
         }
-        covs = [c for c in res.covs if c is not None]
-        if len(covs) == len(res.times):
-            rep["nees"] = evaluation.nees(res.poses, np.array(covs), ref)
-        if true_map:
-            rep["map_error"] = map_error(res, true_map)
-    return rep
+
+    evaluation.add_metric(out, "final_pose_error", final)
+    covs = [res.covs[i] for i in idx] if len(res.covs) == len(res.times) else []
+    if covs and all(c is not None for c in covs):
+        evaluation.add_metric(
+            out, "nees", lambda: evaluation.nees(res.poses[idx], np.array(covs), ref)
+        )
+    if true_map:
+        out["map_error"] = map_error(res, true_map)
+    return out
 
 
 def plot_map(
@@ -339,7 +386,9 @@ def _extent(res: SlamResult, points: np.ndarray | None) -> tuple[float, ...] | N
         hi = np.percentile(points, 99.9, axis=0)
         parts.append(np.array([lo, hi]))
     xy = np.concatenate([p for p in parts if len(p)]) if any(len(p) for p in parts) else None
-    if xy is None:
+    if xy is not None:  # a diverged (non-finite) pose is not drawn; it must not set the axes
+        xy = xy[np.isfinite(xy).all(axis=1)]
+    if xy is None or not len(xy):
         return None
     x0, y0 = xy.min(axis=0)
     x1, y1 = xy.max(axis=0)
@@ -375,6 +424,51 @@ def _ellipse(ax, mean, cov, nsig: float = 3.0) -> None:
     )
 
 
+class OutputGuard:
+    """Writes a run's outputs one at a time into ``folder``, so that one failing leaves the
+    others written: :meth:`write` catches an output's failure (any exception), warns
+    (:class:`~fgslam.errors.OutputWarning`, one line naming the output and the cause),
+    removes the file an earlier run left under that name (it is not this run's) and lists the
+    failure in :attr:`errors` (``{"output": name, "error": cause}``, for report.json)."""
+
+    def __init__(self, folder: str | Path) -> None:
+        self.folder = Path(folder)
+        self.errors: list[dict[str, str]] = []
+
+    def run(self, name: str, make: Callable[[], _T]) -> _T | None:
+        """``make()``, or None when it raised (reported as a failure of output ``name``)."""
+        try:
+            return make()
+        except Exception as exc:  # one output's failure: reported, the others go on
+            cause = f"{type(exc).__name__}: {exc}".strip().splitlines()[0]
+            self.errors.append({"output": name, "error": cause})
+            warnings.warn(f"{name} not written: {cause}", OutputWarning, stacklevel=2)
+            return None
+
+    def write(self, name: str, write: Callable[[Path], _T]) -> _T | None:
+        """``write(folder / name)``, as :meth:`run`; on failure a file of that name is removed."""
+        path = self.folder / name
+        n = len(self.errors)
+        got = self.run(name, lambda: write(path))
+        if len(self.errors) > n:
+            with contextlib.suppress(OSError):
+                path.unlink(missing_ok=True)
+        return got
+
+
+def write_trajectory(path: str | Path, res: SlamResult) -> int:
+    """trajectory.tum: the final estimate's poses that are finite and within
+    ``evaluation.TUM_MAX_POSITION`` (what :func:`~fgslam.evaluation.read_tum` reads back);
+    returns how many poses were left out."""
+    t = np.asarray(res.times, dtype=float).reshape(-1)
+    p = np.asarray(res.poses, dtype=float).reshape(-1, 3)
+    ok = np.isfinite(p).all(axis=1) & np.isfinite(t)
+    ok &= (np.abs(np.nan_to_num(p[:, :2])) <= evaluation.TUM_MAX_POSITION).all(axis=1)
+    with safeio.atomic_path(path) as tmp:
+        evaluation.write_tum(tmp, t[ok], p[ok])
+    return int(len(p) - ok.sum())
+
+
 def write_outputs(
     res: SlamResult,
     out: str | Path,
@@ -385,27 +479,53 @@ def write_outputs(
     scans: list[tuple[float, np.ndarray]] | None = None,
     cfg: RobotConfig | None = None,
     figure: bool = True,
+    more: dict[str, Callable[[Path], object]] | None = None,
 ) -> dict[str, Any]:
-    """Write the four files into directory ``out`` (each atomically); returns the report.
+    """Write trajectory.tum, map.json, map.png and report.json into directory ``out`` (each
+    atomically, each on its own: one that fails is warned about and listed in report.json's
+    ``output_errors``, and the others are still written; see :class:`OutputGuard`); returns
+    the report.
 
     ``extra``: more keys for report.json (what the reader found, ...); ``world``: the
     simulator's world, drawn as an outline; ``scans`` (time, ranges) with ``cfg``: laser scans
     drawn in map.png placed with the estimated trajectory (see :class:`ScanSample`);
-    ``figure`` False leaves map.png out (a checkpoint of an online run)."""
+    ``figure`` False leaves map.png out (a checkpoint of an online run); ``more``: further
+    outputs by file name, each written by its function given its path (trajectory_dense.tum,
+    ...). report.json is written last, so that it lists the failures of the others."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    with safeio.atomic_path(out / "trajectory.tum") as tmp:
-        evaluation.write_tum(tmp, res.times, res.poses)
-    safeio.write_text(out / "map.json", json.dumps(map_dict(res), indent=1))
-    rep = report_dict(res, true_map)
+    guard = OutputGuard(out)
+    rep = guard.run("report.json (metrics)", lambda: report_dict(res, true_map))
+    if rep is None:  # report.json is written all the same, with what needs no computing
+        rep = {"backend": res.backend, "sensors": res.sensors, "poses": len(res.times)}
+        if res.stats.get("partial"):
+            rep["partial"] = dict(res.stats["partial"])
     if extra:
         rep.update(extra)
-    safeio.write_json(out / "report.json", rep)
-    if not figure:
-        return rep
-    points = None
-    if scans and cfg is not None and len(res.times):
-        points = laser_points(scans, *res.every_scan, cfg)
-    label = "reference path" if rep.get("truth_source") == "reference" else "true path"
-    plot_map(res, out / "map.png", world=world, points=points, truth_label=label)
+    left_out = guard.write("trajectory.tum", lambda p: write_trajectory(p, res))
+    if left_out:
+        rep["trajectory_poses_left_out"] = left_out  # not finite, or beyond 1e9 m
+    guard.write("map.json", lambda p: safeio.write_text(p, json.dumps(map_dict(res), indent=1)))
+    for name, write in (more or {}).items():
+        guard.write(name, write)
+    if figure:
+        label = "reference path" if rep.get("truth_source") == "reference" else "true path"
+
+        def draw(path: Path) -> None:
+            opened = set(plt.get_fignums())
+            try:
+                points = None
+                if scans and cfg is not None and len(res.times):
+                    points = laser_points(scans, *res.every_scan, cfg)
+                plot_map(res, path, world=world, points=points, truth_label=label)
+            finally:  # a figure left open by a failure
+                for num in set(plt.get_fignums()) - opened:
+                    plt.close(num)
+
+        guard.write("map.png", draw)
+    if guard.errors:
+        rep["output_errors"] = guard.errors
+    guard.write("report.json", lambda p: safeio.write_json(p, rep))
+    if guard.errors:
+        rep["output_errors"] = guard.errors
     return rep
