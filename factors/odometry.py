@@ -42,6 +42,12 @@ class OdometryParams:
     ``diag((hole_speed g)^2, (hole_speed g)^2, (hole_turn_rate g)^2)`` for a gap of g s,
     added where the gap lies in the sequence (so that its heading error spreads into later
     positions).
+
+    Encoder resolution: ``resolution_right``, ``resolution_left`` (m) are the smallest wheel
+    distances the encoders tell apart (one tick). Every preintegrated interval, however short
+    and even with the robot standing still, gets :func:`resolution_floor`: eq 5 is exactly 0
+    for zero wheel motion, and a between factor without noise makes the factor graph
+    singular. 0: no such floor (only :data:`COVARIANCE_FLOOR`).
     """
 
     wheelbase: float
@@ -56,10 +62,13 @@ class OdometryParams:
     hole_tolerance: float = math.inf  # s
     hole_speed: float = 1.0  # m/s
     hole_turn_rate: float = 1.0  # rad/s
+    resolution_right: float = 0.0  # m, one encoder tick of the right wheel
+    resolution_left: float = 0.0  # m, of the left wheel
 
     def __post_init__(self) -> None:
         vals = (self.wheelbase, self.k_r, self.k_l, self.k_d, *self.alphas)
-        vals += (self.hole_speed, self.hole_turn_rate)
+        vals += (self.hole_speed, self.hole_turn_rate, self.resolution_right)
+        vals += (self.resolution_left,)
         if not all(math.isfinite(v) for v in vals) or self.wheelbase <= 0:
             raise ValueError(f"invalid odometry parameters {self}")
         if min(vals[1:]) < 0 or not self.hole_tolerance > 0:
@@ -306,7 +315,31 @@ def to_between_covariance(P_start: ArrayLike, dth: float) -> NDArray[np.float64]
 # Variance floor added to every preintegrated covariance (0.1 mm, 0.1 mrad standard deviation):
 # a robot standing still has zero odometry uncertainty in eq 4, and a between factor that
 # strong makes the factor graph ill conditioned (iSAM2 then reports an indeterminate system).
+# A numerical guard, on top of the physical floor of the encoders (resolution_floor).
 COVARIANCE_FLOOR = 1e-8
+
+
+def resolution_floor(params: OdometryParams) -> NDArray[np.float64]:
+    """The covariance (3x3, [x m, y m, theta rad], in the frame of the interval's end) that the
+    encoders' resolution gives any preintegrated interval: each wheel's distance over it is
+    the difference of two quantised readings, off by the difference of two errors uniform
+    over one tick r (variance r^2 / 6). Hence along track ``(q_r + q_l) / 4``, heading
+    ``(q_r + q_l) / D^2``, their covariance ``(q_r - q_l) / (2 D)`` (q = r^2 / 6). Wheels do
+    not sense sideways motion at all; the lateral variance is taken equal to the along-track
+    one, so that the floor has full rank (a robot standing still is placed no better
+    sideways than along its track)."""
+    q_r, q_l = params.resolution_right**2 / 6.0, params.resolution_left**2 / 6.0
+    D = params.wheelbase
+    along = 0.25 * (q_r + q_l)
+    cross = 0.5 * (q_r - q_l) / D
+    return np.array([[along, 0.0, cross], [0.0, along, 0.0], [cross, 0.0, (q_r + q_l) / D**2]])
+
+
+def _floor_start(params: OdometryParams, dth: float) -> NDArray[np.float64]:
+    """:data:`COVARIANCE_FLOOR` and :func:`resolution_floor` in the axes of the interval's
+    start, for a motion turning ``dth`` rad (the floor lies in the end's axes)."""
+    floor = to_between_covariance(resolution_floor(params), -dth)
+    return floor + np.eye(3) * COVARIANCE_FLOOR
 
 
 def preintegrate(
@@ -318,18 +351,19 @@ def preintegrate(
     last_sample: float | None = None,
 ) -> Preintegrated:
     """Integrate the samples between two keyframes in the first keyframe's frame, from the
-    identity with zero covariance (plus :data:`COVARIANCE_FLOOR`); an empty interval gives
-    the identity. With the samples' ``times``, the keyframes' times ``span`` and the time
-    of the ``last_sample`` before the interval, odometry holes (:func:`_gaps`: gaps longer
-    than the tolerance with a keyframe in them) get the covariance of :func:`hole_noise`."""
+    identity with zero covariance (plus the floors: :func:`resolution_floor` of the
+    encoders, :data:`COVARIANCE_FLOOR`); an empty interval gives the identity with them.
+    With the samples' ``times``, the keyframes' times ``span`` and the time of the
+    ``last_sample`` before the interval, odometry holes (:func:`_gaps`: gaps longer than the
+    tolerance with a keyframe in them) get the covariance of :func:`hole_noise`."""
     lr = np.atleast_1d(np.asarray(lr, dtype=float))
     gaps = _gaps(times, span, lr.size, params.hole_tolerance, last_sample)
     hole = float(gaps.sum())
     if lr.size == 0:
-        P = np.eye(3) * COVARIANCE_FLOOR + (hole_noise(hole, params) if hole else 0.0)
+        P = _floor_start(params, 0.0) + (hole_noise(hole, params) if hole else 0.0)
         return Preintegrated(gtsam.Pose2(), P, P, 0, hole, np.zeros((3, 3)))
     (x, y, th), P, Jc = propagate(lr, ll, params, times=times, span=span, last_sample=last_sample)
-    P = P + np.eye(3) * COVARIANCE_FLOOR
+    P = P + _floor_start(params, th)
     return Preintegrated(
         gtsam.Pose2(x, y, wrap_angle(th)),
         to_between_covariance(P, th),
@@ -425,11 +459,11 @@ class OdometryIntegrator:
     def keyframe(self) -> Preintegrated:
         """Relative motion since the previous keyframe (GTSAM between convention); restart."""
         if self._n == 0:
-            eps = np.eye(3) * COVARIANCE_FLOOR
+            eps = _floor_start(self.params, 0.0)
             out = Preintegrated(gtsam.Pose2(), eps, eps, 0)
         else:
-            P = 0.5 * (self._P + self._P.T) + np.eye(3) * COVARIANCE_FLOOR
             x, y, th = self._rel
+            P = 0.5 * (self._P + self._P.T) + _floor_start(self.params, th)
             out = Preintegrated(
                 gtsam.Pose2(x, y, wrap_angle(th)), to_between_covariance(P, th), P, self._n
             )

@@ -71,6 +71,10 @@ class OdometryConfig:
     # prior standard deviations of (e_r, e_l, e_b): how far the nominal values may be off
     # (tyre wear and load change a radius by about 1 %, the contact patch the wheelbase)
     calibration_sigma: tuple[float, ...] = (0.01, 0.01, 0.01)
+    # m: the smallest wheel distance the encoders tell apart, a floor under every
+    # preintegrated covariance (factors.odometry.resolution_floor); 0: one encoder tick,
+    # 2 pi r / encoder_steps_per_rev of each wheel
+    resolution: float = 0.0
 
     def calibration_prior(self) -> Any:
         """The prior covariance (3x3) of the wheel calibration errors, or None when off."""
@@ -97,6 +101,8 @@ class OdometryConfig:
             self.hole_tolerance or math.inf,
             self.hole_speed,
             self.hole_turn_rate,
+            self.resolution or self.metres_per_tick_right,
+            self.resolution or self.metres_per_tick_left,
         )
 
     @property
@@ -457,6 +463,7 @@ _NON_NEGATIVE = {
     "odometry.hole_tolerance",
     "odometry.hole_speed",
     "odometry.hole_turn_rate",
+    "odometry.resolution",
     "laser.systematic_offset",
     "laser.systematic_per_metre",
     "laser.sigma_time",
@@ -473,6 +480,7 @@ _MAXIMUM = {
     "odometry.wheel_radius_left": 10.0,
     "odometry.encoder_steps_per_rev": 1e9,
     "odometry.sample_period": 60.0,
+    "odometry.resolution": 1.0,
     "laser.n_beams": 100000,
     "laser.fov_deg": 360.0,
     "laser.max_range": 1e6,

@@ -302,9 +302,19 @@ def test_odometry_hole_covariance():
 
 
 def test_default_configuration_params_unchanged():
-    """The paper robot's configuration gives eq 5 alone: no motion error model terms."""
+    """The paper robot's configuration gives eq 5 alone: no motion error model terms (and
+    the floor of one encoder tick, 2 pi 0.075 / 2000 m, per wheel)."""
     from fgslam.config import load_config
 
     p = load_config().odometry.params()
-    assert p == OdometryParams(0.42, 0.05, 0.05, 0.1, hole_tolerance=p.hole_tolerance)
+    tick = 2 * np.pi * 0.075 / 2000
+    assert p == OdometryParams(
+        0.42,
+        0.05,
+        0.05,
+        0.1,
+        hole_tolerance=p.hole_tolerance,
+        resolution_right=tick,
+        resolution_left=tick,
+    )
     assert not p.has_motion_model
