@@ -365,7 +365,18 @@ def _input_notes(reader, tap: _Tap, results: list) -> tuple[dict, list[str]]:
         notes += [f"warning: {w}" for w in summary.get("warnings", [])]
     elif "timestamps" in summary:  # a native log's clock check (docs/readers.md)
         extra["reader"] = {"timestamps": summary["timestamps"]}
+        notes += [f"warning: {w}" for w in _reader_warnings(summary)]
     return extra, notes
+
+
+def _reader_warnings(summary: dict) -> list[str]:
+    """A reader's one-line warnings (``summary["warnings"]`` of the foreign readers; for a
+    native log read in record order for want of a usable clock, that)."""
+    if "warnings" in summary:
+        return list(summary["warnings"])
+    from fgslam.readers.common import clock_warnings
+
+    return clock_warnings(summary.get("timestamps"))
 
 
 def _report_partial(rep: dict, out: str) -> int:
@@ -394,7 +405,11 @@ def _report_partial(rep: dict, out: str) -> int:
 
 def _reader_options(args: argparse.Namespace) -> dict:
     """Options of the foreign-log readers (fgslam.readers.open_log) from the command line."""
-    opts: dict = {"tolerant": getattr(args, "tolerant", False), "format": args.format}
+    opts: dict = {
+        "tolerant": getattr(args, "tolerant", False),
+        "strict": getattr(args, "strict", False),
+        "format": args.format,
+    }
     for key in ("scan_topic", "odom_topic", "range_topics", "carmen_mode", "timestamps"):
         value = getattr(args, key, None)
         if value:
@@ -705,10 +720,18 @@ def _add_reader_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument(
         "--timestamps",
         choices=["auto", "ipc", "logger", "index", "header", "bag", "log"],
-        help="the clock to use (docs/readers.md); default auto: the sound one, else an "
-        "error naming the defect. CARMEN: the stamp field ipc or logger; ROS: header "
-        "stamps or bag (record times); fgslam logs: log (its stamps as they are); CARMEN and "
-        "fgslam logs: index (scans 0.2 s apart)",
+        help="the clock to use (docs/readers.md); default auto: the sound one, else (CARMEN "
+        "and fgslam logs) index with a warning, or an error naming the defect (bags, "
+        "--strict). CARMEN: the stamp field ipc or logger; ROS: header stamps or bag (record "
+        "times); fgslam logs: log (its stamps as they are); CARMEN and fgslam logs: index "
+        "(record order, scans 0.2 s apart; odometry speeds not checked)",
+    )
+    g.add_argument(
+        "--strict",
+        action="store_true",
+        help="refuse a log with implausible odometry (a jump faster than 3 m/s or 6 rad/s) "
+        "or without a usable clock; by default such odometry records are skipped and "
+        "counted (the jump dropped) and such a log is read in record order, with a warning",
     )
     g.add_argument("--scan-topic", help="ROS: sensor_msgs/LaserScan topic (default: the only)")
     g.add_argument("--odom-topic", help="ROS: nav_msgs/Odometry topic (default: the only)")
@@ -743,6 +766,8 @@ def _cmd_convert(args: argparse.Namespace) -> int:
         print(f"skipped {summary['skipped']} bad records: {summary['skipped_by_reason']}")
     if summary["timestamps_backwards"]:
         print(f"timestamps going backwards (kept as they are): {summary['timestamps_backwards']}")
+    for w in _reader_warnings(summary):
+        print(f"warning: {w}")
     kind = getattr(reader, "reference_kind", None)
     if kind == "reference":
         print("truth records hold the log's reference poses (not ground truth)")

@@ -108,14 +108,17 @@ def write_bag(
     header=None,
     record=None,
     frozen: range = range(0),
+    shift: tuple[int, float] | None = None,
 ) -> None:
     """A bag with /scan (181 beams over 180 deg), /odom (two messages per scan, the robot
     advancing 5 cm and turning 0.02 rad per message, :func:`bag_drive`) and /sonar
     (sensor_msgs/Range, one out-of-range reading). ``zero_stamps``: every header stamp 0
     (the record times stay); ``jump``: odometry message ``jump`` 1e6 m off; ``frozen``: the
     odometry messages in it repeat the pose of message ``frozen.start - 1`` (the stream froze
-    while the robot drove on); ``header(topic, k, t)`` / ``record(topic, k, t)``: the header
-    stamp / record time of the k-th message (from 0) of a topic instead of ``t``."""
+    while the robot drove on); ``shift`` = (k, dx): odometry messages k and after dx m off in
+    x (the odometry jumped and continued from there); ``header(topic, k, t)`` / ``record(topic,
+    k, t)``: the header stamp / record time of the k-th message (from 0) of a topic instead of
+    ``t``."""
     from rosbags.typesys import Stores, get_typestore
 
     ts = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
@@ -165,6 +168,8 @@ def write_bag(
             q = g["Quaternion"](x=0.0, y=0.0, z=math.sin(th / 2), w=math.cos(th / 2))
             if jump is not None and k == jump:
                 x += 1e6  # a corrupt odometry message
+            if shift is not None and k >= shift[0]:
+                x += shift[1]  # the odometry jumped and stayed
             pose = g["Pose"](position=g["Point"](x=x, y=y, z=0.0), orientation=q)
             odom = T["nav_msgs/msg/Odometry"](
                 header=hdr(t, "odom"),

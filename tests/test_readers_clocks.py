@@ -65,6 +65,7 @@ def test_native_sound_log_from_zero_is_read_unchanged(tmp_path):
         "requested": "auto",
         "defects": {},
         "used": "log",
+        "clock": "log (stamps, sound)",
         "sporadic_bad_stamps": {},
         "unix_time": False,
     }
@@ -83,7 +84,7 @@ def test_native_quantised_stamps_are_refused_and_index_runs_them(tmp_path):
         rf"scans share a stamp, 1 distinct values; first at line {second_scan}: "
         r"1\.13486e\+09\)\); choose with --timestamps index\|log",
     ):
-        open_log(path)
+        open_log(path, strict=True)
     log = open_log(path, timestamps="index")
     events = list(log)
     ev = by_type(events)
@@ -104,7 +105,7 @@ def test_native_odometry_stamped_zero(tmp_path):
     with pytest.raises(
         LogFormatError, match=rf"odometry stamped 0 \(120 of 120, first at line {first}\)"
     ):
-        open_log(path)
+        open_log(path, strict=True)
     assert ticks(open_log(path, timestamps="index")) == (360, 240)
 
 
@@ -120,7 +121,7 @@ def test_native_wrapped_stamps(tmp_path):
     with pytest.raises(
         LogFormatError, match=rf"odometry stamps wrapped at 2\^32 \(line {first_wrapped}\)"
     ):
-        open_log(path)
+        open_log(path, strict=True)
     log = open_log(path, timestamps="log")
     assert len(by_type(log)[LaserScan]) == 30
     rec = log.summary()["timestamps"]
@@ -137,7 +138,7 @@ def test_native_junk_stamps_on_a_unix_clock(tmp_path):
     with pytest.raises(
         LogFormatError, match=rf"sonar stamps junk \(3 of 30 bad, first at line {line}: 3e-86\)"
     ):
-        open_log(path)
+        open_log(path, strict=True)
 
 
 def test_native_scan_back_beyond_the_tolerance(tmp_path):
@@ -151,7 +152,7 @@ def test_native_scan_back_beyond_the_tolerance(tmp_path):
         LogFormatError,
         match=rf"laser stamps backwards by more than 2 s \(1 of 30 bad, first at line {line}",
     ):
-        open_log(path)
+        open_log(path, strict=True)
     log = open_log(path, backwards_tolerance=10.0)
     assert len(by_type(log)[LaserScan]) == 30 and log.backwards == {"laser": 1}
 
@@ -181,12 +182,13 @@ def test_native_sporadic_bad_stamps_are_dropped_and_odometry_carried(tmp_path):
 
 def test_native_timestamps_option_values(tmp_path, capsys):
     """A CARMEN or ROS clock name for a native log is a one-line error; --timestamps index
-    converts a log refused without it, and the converted log keeps its META."""
+    converts a log refused without it (with --strict), and the converted log keeps its
+    META."""
     path = native(tmp_path, stamp=lambda kind, k, t: 0.0)
     with pytest.raises(LogFormatError, match="unknown --timestamps 'ipc' for an fgslam log"):
         open_log(path, timestamps="ipc")
     out = tmp_path / "o.log"
-    assert main(["convert", str(path), "--out", str(out)]) == 2
+    assert main(["convert", str(path), "--strict", "--out", str(out)]) == 2
     err = capsys.readouterr().err
     assert "odometry stamped 0 (120 of 120" in err and err.count("\n") == 1
     assert main(["convert", str(path), "--timestamps", "index", "--out", str(out)]) == 0
@@ -258,6 +260,7 @@ def test_bag_sound_clocks_use_the_header_stamps(tmp_path, ros1):
         "requested": "auto",
         "defects": {},
         "used": "header",
+        "clock": "header (header stamps, sound)",
         "sporadic_bad_stamps": {},
     }
     assert len(ev[LaserScan]) == 10 and ev[LaserScan][0].t == pytest.approx(1.09)

@@ -86,7 +86,7 @@ def test_coarse_stamps_are_refused_naming_the_line(tmp_path):
         match=r"x\.log: no usable timestamps \(ipc field: scan "
         r"stamps quantised .* first at line \d+",
     ):
-        open_log(f)
+        open_log(f, strict=True)
     log = open_log(f, timestamps="index")
     scans, _odo, ev = scans_and_odometry(log)
     assert len(scans) == 30
@@ -125,7 +125,7 @@ def test_scans_stamped_zero_with_junk_repeats(tmp_path):
     )
     f = write(tmp_path, text)
     with pytest.raises(ReaderError, match=r"scan stamped 0 \(30 of 30, first at line \d+\)"):
-        open_log(f)
+        open_log(f, strict=True)
     log = open_log(f, timestamps="index")
     scans, _, ev = scans_and_odometry(log)
     assert len(scans) == 30 and len(log._repeats) == 30
@@ -144,7 +144,7 @@ def test_wrapped_stamps_use_the_other_field(tmp_path):
     assert len(scans_and_odometry(log)[0]) == 30
     f2 = write(tmp_path, restamp(carmen_text(corrected=False), ipc=wrap, logger=wrap), "w.log")
     with pytest.raises(ReaderError, match=r"wrapped at 2\^32 \(line \d+\)"):
-        open_log(f2)
+        open_log(f2, strict=True)
     # forced: the user's choice is run, and recorded
     log = open_log(f2, timestamps="ipc")
     assert log.meta["timestamps"]["used"] == "ipc" and log.meta["timestamps"]["requested"]
@@ -157,7 +157,7 @@ def test_scan_going_back_beyond_the_tolerance(tmp_path):
     lines = f.read_text().splitlines()
     bad = 1 + next(i for i, ln in enumerate(lines) if ln.startswith("FLASER") and " 4.5 h" in ln)
     with pytest.raises(ReaderError, match=rf"backwards by more than 2 s .* line {bad}: 4\.5\)"):
-        open_log(f)
+        open_log(f, strict=True)
     assert len(scans_and_odometry(open_log(f, backwards_tolerance=10.0))[0]) == 29
 
 
@@ -209,8 +209,8 @@ def test_huge_values_are_a_one_line_error(tmp_path, field):
 def test_odometry_jump(tmp_path, jump):
     """A corrupt ODOM line 1e10 m away (the known hang: billions of virtual ticks) is out of
     any pose's range; one 1e6 m away is implausible motion: strict, an error naming the
-    line; tolerant, skipped and counted, the rest of the odometry intact (the same ticks as
-    the clean log)."""
+    line; tolerant (the bad record), skipped and counted, the rest of the odometry intact
+    (the same ticks as the clean log)."""
     text = carmen_text(corrected=False)
     lines = text.splitlines()
     i = [k for k, ln in enumerate(lines) if ln.startswith("ODOM")][12]
@@ -220,7 +220,7 @@ def test_odometry_jump(tmp_path, jump):
     path = write(tmp_path, "\n".join(lines) + "\n")
     what = "ODOM: pose 1e\\+10 .* out of range" if jump > 1e7 else "implausible odometry: 1e\\+06 m"
     with pytest.raises(ReaderError, match=rf"x\.log:{i + 1}: {what}"):
-        list(open_log(path))
+        list(open_log(path, strict=True))
     log = open_log(path, tolerant=True)
     scans, odo, _ = scans_and_odometry(log)
     assert len(scans) == 30
@@ -272,10 +272,10 @@ def test_odometry_hole_is_counted_and_its_motion_stamped_at_its_end(tmp_path):
 
 
 def test_cli_timestamps_option(tmp_path, capsys):
-    """fgslam convert --timestamps index runs a log refused without it."""
+    """fgslam convert --timestamps index runs a log refused without it with --strict."""
     six = lambda kind, k, t: f"{1.13486e9 + 0.4 * t:.6g}"
     f = write(tmp_path, restamp(carmen_text(corrected=False), ipc=six, logger=six))
-    assert main(["convert", str(f), "--out", str(tmp_path / "o.log")]) == 2
+    assert main(["convert", str(f), "--strict", "--out", str(tmp_path / "o.log")]) == 2
     assert "no usable timestamps" in capsys.readouterr().err
     assert main(["convert", str(f), "--timestamps", "index", "--out", str(tmp_path / "o.log")]) == 0
 
@@ -385,7 +385,8 @@ def test_warnings_for_inputs_with_almost_nothing(tmp_path, capsys):
 @pytest.mark.parametrize("ros1", [True, False])
 def test_ros_bag_unset_header_stamps_and_a_jump(tmp_path, ros1):
     """A bag whose header stamps are all 0: the record times are used (metadata says so);
-    an odometry message 1e6 m off: strict, an error; tolerant, skipped and counted."""
+    an odometry message 1e6 m off: strict, an error; tolerant, skipped and counted (as by
+    default)."""
     from readers_helpers import write_bag
 
     path = tmp_path / ("z.bag" if ros1 else "z")
@@ -397,7 +398,7 @@ def test_ros_bag_unset_header_stamps_and_a_jump(tmp_path, ros1):
     path2 = tmp_path / ("j.bag" if ros1 else "j")
     write_bag(path2, ros1, with_range=False, jump=7)
     with pytest.raises(ReaderError, match="implausible odometry"):
-        list(open_log(path2))
+        list(open_log(path2, strict=True))
     log = open_log(path2, tolerant=True)
     list(log)
     assert log.problems.notes["odometry"]["implausible"] >= 1

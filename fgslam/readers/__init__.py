@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from fgslam.readers.common import ReaderError, StrPath, head_text
-from fgslam.readers.sanity import BACKWARDS_TOLERANCE
+from fgslam.readers.sanity import BACKWARDS_TOLERANCE, INDEX_PERIOD
 
 FORMATS = ("fgslam", "carmen", "ros", "victoria")
 
@@ -51,21 +51,17 @@ def sniff_format(path: StrPath) -> str:
 
 def open_log(path: StrPath, format: str | None = None, **options: Any):
     """Open a log of any supported sensor-log format; ``options`` go to the reader
-    (``tolerant``, ``timestamps`` and ``backwards_tolerance`` for all; ``timestamps``: fgslam
-    ``auto``/``log``/``index``, CARMEN ``auto``/``ipc``/``logger``/``index``, ROS
-    ``auto``/``header``/``bag``; CARMEN: ``mode``, ``no_return``, ``limits``; ROS:
-    ``scan_topic``, ``odom_topic``, ``range_topics``, ``laser_mount``, ``range_mounts``,
-    ``limits``). Every format's clock is checked (docs/readers.md, "Timestamps")."""
+    (``tolerant``, ``strict``, ``timestamps`` and ``backwards_tolerance`` for all;
+    ``timestamps``: fgslam ``auto``/``log``/``index``, CARMEN ``auto``/``ipc``/``logger``/
+    ``index``, ROS ``auto``/``header``/``bag``; CARMEN: ``mode``, ``no_return``, ``limits``;
+    ROS: ``scan_topic``, ``odom_topic``, ``range_topics``, ``laser_mount``, ``range_mounts``,
+    ``limits``). Every format's clock is checked (docs/readers.md, "Timestamps"): a CARMEN or
+    native log without a usable clock is read in record order (``index``) with a warning,
+    refused with ``strict``; ``strict`` also refuses implausible odometry, which is otherwise
+    skipped and counted."""
     fmt = format or sniff_format(path)
     if fmt == "fgslam":
-        from fgslam.logfile import LogReader
-
-        return LogReader(
-            path,
-            tolerant=bool(options.get("tolerant", False)),
-            timestamps=options.get("timestamps") or "auto",
-            backwards_tolerance=options.get("backwards_tolerance", BACKWARDS_TOLERANCE),
-        )
+        return _open_native(path, options)
     if fmt == "carmen":
         from fgslam.readers.carmen import CarmenLog
 
@@ -77,6 +73,7 @@ def open_log(path: StrPath, format: str | None = None, **options: Any):
             "timestamps",
             "limits",
             "backwards_tolerance",
+            "strict",
         )
         return CarmenLog(path, **{k: v for k, v in options.items() if k in keys})
     if fmt == "ros":
@@ -92,6 +89,7 @@ def open_log(path: StrPath, format: str | None = None, **options: Any):
             "timestamps",
             "limits",
             "backwards_tolerance",
+            "strict",
         )
         return RosBag(path, **{k: v for k, v in options.items() if k in keys})
     if fmt == "victoria":
@@ -101,3 +99,33 @@ def open_log(path: StrPath, format: str | None = None, **options: Any):
             "(fgslam.slam.pointslam)"
         )
     raise ReaderError(f"unknown format {fmt!r}; expected one of {FORMATS}")
+
+
+def _open_native(path: StrPath, options: dict[str, Any]):
+    """A native log (:class:`fgslam.logfile.LogReader`) with its clock checked; without a
+    usable clock (``timestamps`` auto) it is read in record order (``index``) unless
+    ``strict``, the reason in ``clock_record["fallback"]`` and ``["clock"]``."""
+    from fgslam.logfile import LogFormatError, LogReader
+    from fgslam.readers.common import NoUsableClock
+
+    timestamps = options.get("timestamps") or "auto"
+    kw = {
+        "tolerant": bool(options.get("tolerant", False)),
+        "backwards_tolerance": options.get("backwards_tolerance", BACKWARDS_TOLERANCE),
+    }
+    try:
+        return LogReader(path, timestamps=timestamps, **kw)
+    except LogFormatError as exc:
+        cause = exc.__context__  # LogReader words the clock check's NoUsableClock as its own
+        if options.get("strict") or timestamps != "auto" or not isinstance(cause, NoUsableClock):
+            raise
+    reader = LogReader(path, timestamps="index", **kw)
+    record = reader.clock_record
+    if record is not None:  # a regular file: the clock was checked
+        what = "; ".join(f"stamps: {d[0]}" for d in record["defects"].values() if d)
+        record["requested"] = "auto"
+        record["fallback"] = f"no usable timestamps ({what})"
+        record["clock"] = (
+            f"index (no usable stamps: {what}; record order, scans {INDEX_PERIOD:g} s apart)"
+        )
+    return reader

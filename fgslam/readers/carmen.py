@@ -61,6 +61,7 @@ from fgslam.events import Event, LaserScan, TruthPose, own_bearings
 if TYPE_CHECKING:
     from fgslam.dense import OdometryChain
 from fgslam.readers.common import (
+    OdometryJumps,
     ReaderError,
     Source,
     StaleOdometryHold,
@@ -75,7 +76,6 @@ from fgslam.readers.common import (
 from fgslam.readers.sanity import (
     BACKWARDS_TOLERANCE,
     MAX_STAMP,
-    MIN_DT,
     OdometryLimits,
     choose_clock,
     implausible,
@@ -249,8 +249,10 @@ class CarmenLog(Source):
         timestamps: str = "auto",
         limits: OdometryLimits | None = None,
         backwards_tolerance: float = BACKWARDS_TOLERANCE,
+        strict: bool = False,
     ) -> None:
         super().__init__(path)
+        self.strict = strict  # refuse implausible odometry and a log without a usable clock
         if mode not in MODES:
             raise ReaderError(f"unknown CARMEN mode {mode!r}; expected one of {MODES}")
         self.no_return = float(no_return)
@@ -293,7 +295,8 @@ class CarmenLog(Source):
             v = np.array(vals, dtype=float)
             sc, od = kd == "scan", kd == "odometry"
             reports[name] = stamp_defects(ln[sc], v[sc], ln[od], v[od], tolerance)
-        clock, record = choose_clock(self.name, reports, requested)
+        fallback = None if self.strict else "index"
+        clock, record = choose_clock(self.name, reports, requested, fallback=fallback)
         self.clock = clock
         self._stamps: dict[int, float] | None = None
         if clock == "index":
@@ -416,9 +419,8 @@ class CarmenLog(Source):
                 notes["hole_seconds"] = round(notes["hole_seconds"] + now - hole_from, 3)
             return False
 
-        base = (0.0, 0.0, 0.0)  # corrected: P_{k-1}; raw: the last ODOM pose used
-        base_t = -math.inf  # raw: stamp of the record of `base`
-        jumped: tuple | None = None  # raw: pose of the last record skipped as implausible
+        base = (0.0, 0.0, 0.0)  # corrected: P_{k-1}; raw: the last scan odometry field
+        jumps = OdometryJumps(limits, clock=self.clock != "index")  # raw: the ODOM lines
         pending: list[tuple[float, np.ndarray]] = []  # corrected: ODOMs relative to P_{k-1}
         carried = np.zeros(3)  # motion not yet delivered (an increment)
         have_odom = False
@@ -448,22 +450,15 @@ class CarmenLog(Source):
                     pending.append((t, rel))
                     continue
                 if not have_odom:
-                    base, base_t, have_odom = rec["pose"], t, True
+                    jumps.step(rec["pose"], t)
+                    have_odom = True
                     last_odo_t = t if math.isfinite(t) else last_odo_t
                     continue
-                inc = relative(base, rec["pose"])
-                if implausible(inc, t - base_t, limits) is not None:
-                    if jumped is not None and not implausible(
-                        relative(jumped, rec["pose"]), MIN_DT, limits
-                    ):
-                        notes["rebased"] += 1  # the odometry jumped and stayed: restart there
-                        base, base_t, jumped = rec["pose"], t, None
-                    else:
-                        self._implausible(lineno, inc, t - base_t)
-                        jumped = rec["pose"]
+                inc, why = jumps.step(rec["pose"], t)
+                notes["rebased"] = jumps.rebased
+                if inc is None:  # a jump: dropped (OdometryJumps)
+                    self._skip_implausible(lineno, why)
                     continue
-                jumped = None
-                base, base_t = rec["pose"], t
                 carried = compose(carried, inc)
                 if not (t >= last_odo_t and t >= last_scan_t):
                     pr.backwards["ODOM"] += 1
@@ -540,7 +535,9 @@ class CarmenLog(Source):
             n_scans += 1
             yield from hold.event(LaserScan(t, ranges, bearings))
         yield from hold.flush()
-        self.problems.notes["warnings"] = input_warnings(n_scans, drive.travel, notes)
+        self.problems.notes["warnings"] = input_warnings(
+            n_scans, drive.travel, notes, self.meta.get("timestamps")
+        )
 
     def scan_bearings(self, rec: dict) -> np.ndarray | None:
         """A laser record's bearings (rad, the laser frame of the configuration: the first
@@ -556,17 +553,23 @@ class CarmenLog(Source):
         return self._geometry[key]
 
     def _implausible(self, lineno: int, inc: np.ndarray, dt: float) -> bool:
-        """Check an odometry increment over ``dt`` s: False when plausible; else counted and
-        True (tolerant), or a :class:`ReaderError` naming the line (strict)."""
-        why = implausible(inc, dt, self.limits)
+        """Check an odometry increment (dx m, dy m, dtheta rad) over ``dt`` s (not used with
+        index stamps: no clock, only the step's distance is bounded): False when plausible;
+        else :meth:`_skip_implausible` and True."""
+        why = implausible(inc, None if self.clock == "index" else dt, self.limits)
         if why is None:
             return False
+        self._skip_implausible(lineno, why)
+        return True
+
+    def _skip_implausible(self, lineno: int, why: str) -> None:
+        """An implausible odometry record: counted and skipped, or (strict) a
+        :class:`ReaderError` naming the line."""
         msg = f"{self.name}:{lineno}: implausible odometry: {why}"
-        if not self.tolerant:
-            raise ReaderError(msg + " (--tolerant skips such records)")
+        if self.strict:
+            raise ReaderError(msg + " (refused with --strict; without it, skipped and counted)")
         self._odo_notes["implausible"] += 1
         self.problems.skip("implausible odometry", msg)
-        return True
 
 
 def odometry_check(path: StrPath) -> dict[str, np.ndarray]:

@@ -25,7 +25,7 @@ from fgslam.config import Mount, RobotConfig, load_config
 from fgslam.errors import UserError
 from fgslam.events import Event, OdometryEvent
 from fgslam.frontend.fits import RESIDUAL_TEST
-from fgslam.readers.sanity import OdometryLimits
+from fgslam.readers.sanity import INDEX_PERIOD, OdometryLimits, implausible, usage
 
 StrPath = str | PathLike[str]
 Increment = tuple[float, float, float] | np.ndarray  # (dx m, dy m, dtheta rad)
@@ -51,6 +51,11 @@ MAX_SAMPLES = 200000  # samples of one increment at most (10 km, 400 turns)
 
 class ReaderError(UserError, ValueError):
     """A foreign log cannot be read; the message is one line naming file (and line)."""
+
+
+class NoUsableClock(ReaderError):
+    """No clock of the log is sound and no fallback was allowed (strict)
+    (:func:`fgslam.readers.sanity.choose_clock`)."""
 
 
 class Problems:
@@ -405,13 +410,91 @@ class StaleOdometryHold:
         return out
 
 
+class OdometryJumps:
+    """Implausible odometry in a stream of poses (x m, y m, theta rad) with stamps (s): what
+    :meth:`step` returns is the increment to deliver, in the frame of the last pose used, or
+    None for a pose skipped as implausible (:func:`fgslam.readers.sanity.implausible`).
+
+    A jump is dropped, never carried into the motion: the pose after a skipped one is taken
+    relative to whichever of the last good pose and the skipped pose it lies nearer to, by
+    the fraction of the plausible motion it takes (:func:`fgslam.readers.sanity.usage`).
+    Nearer the last good pose (a spike), the odometry continues from it; nearer the skipped
+    pose (the odometry jumped and stayed, as ``intel.orig.bag``'s /odom does twice), it
+    continues from the skipped pose (counted as ``rebased``): in both cases the jump itself
+    is not motion, and the motion before and after it is kept. ``clock`` False (index
+    stamps): only the distance of a step is checked. A pose with a stamp that is not finite
+    (a sporadic junk stamp) keeps the stamp of the pose before it."""
+
+    def __init__(self, limits: OdometryLimits, clock: bool = True) -> None:
+        self.limits = limits
+        self.clock = clock
+        self.base: tuple[float, float, float] | None = None  # the last pose used
+        self.base_t = -math.inf  # s, its stamp
+        self.jumped: tuple[float, float, float] | None = None  # the last pose skipped
+        self.jumped_t = -math.inf
+        self.rebased = 0
+
+    def _dt(self, t: float, since: float) -> float | None:
+        return t - since if self.clock else None
+
+    def step(self, pose: tuple[float, float, float], t: float) -> tuple[np.ndarray | None, str]:
+        """(increment or None, why the pose is implausible: "" when it is not) for the next
+        pose at ``t`` s; the first pose gives a zero increment."""
+        t_known = t if math.isfinite(t) else None
+        if self.base is None:
+            self.base, self.base_t = pose, t_known if t_known is not None else self.base_t
+            return np.zeros(3), ""
+        inc = relative(self.base, pose)
+        why = implausible(inc, self._dt(t, self.base_t), self.limits)
+        if self.jumped is not None:
+            from_jump = relative(self.jumped, pose)
+            dt_jump = self._dt(t, self.jumped_t)
+            if implausible(from_jump, dt_jump, self.limits) is None and (
+                why is not None
+                or usage(from_jump, dt_jump, self.limits)
+                < usage(inc, self._dt(t, self.base_t), self.limits)
+            ):
+                self.rebased += 1  # the odometry jumped and stayed: continue from there
+                self._use(pose, t_known)
+                return from_jump, ""
+        if why is not None:
+            self.jumped = pose
+            self.jumped_t = t_known if t_known is not None else self.base_t
+            return None, why
+        self._use(pose, t_known)
+        return inc, ""
+
+    def _use(self, pose: tuple[float, float, float], t: float | None) -> None:
+        self.base, self.jumped = pose, None
+        if t is not None:
+            self.base_t = t
+
+
 MIN_SCANS = 10  # fewer scans than this: "almost nothing to process"
 
 
-def input_warnings(scans: int, travel: float, odometry: dict[str, Any] | None = None) -> list[str]:
-    """One-line warnings about an input that gives almost nothing to process, no motion, or
-    mostly holes (for the console and ``report.json``)."""
-    out = []
+def clock_warnings(clock: dict[str, Any] | None) -> list[str]:
+    """The one-line warning of a log read in record order for want of a usable clock
+    (``clock``: the record of :func:`fgslam.readers.sanity.choose_clock`), or none."""
+    if not clock or not clock.get("fallback"):
+        return []
+    return [
+        f"{clock['fallback']}: read in record order, scans {INDEX_PERIOD:g} s apart "
+        "(--timestamps index), odometry speeds not checked; --strict refuses such a log"
+    ]
+
+
+def input_warnings(
+    scans: int,
+    travel: float,
+    odometry: dict[str, Any] | None = None,
+    clock: dict[str, Any] | None = None,
+) -> list[str]:
+    """One-line warnings about an input that gives almost nothing to process, no motion,
+    mostly holes, implausible odometry skipped (``odometry``: the reader's odometry notes), or
+    no usable clock (``clock``: the record of :func:`fgslam.readers.sanity.choose_clock`),
+    for the console and ``report.json``."""
+    out = clock_warnings(clock)
     if scans < MIN_SCANS:
         out.append(f"only {scans} laser scans: almost nothing to process")
     if scans >= 2 and travel < 1e-3:
@@ -420,6 +503,14 @@ def input_warnings(scans: int, travel: float, odometry: dict[str, Any] | None = 
         out.append(
             f"{odometry['holes']} odometry holes ({odometry.get('hole_seconds', 0):g} s without "
             "odometry while scans came): their motion is uncertain"
+        )
+    if odometry and odometry.get("implausible"):
+        rebased = odometry.get("rebased", 0)
+        out.append(
+            f"{odometry['implausible']} implausible odometry records skipped (jumps, dropped: "
+            "the odometry continues from the last good record"
+            + (f", or from the jump where it stayed: {rebased} times" if rebased else "")
+            + "; --strict refuses such a log)"
         )
     return out
 

@@ -27,9 +27,10 @@ before reading, both clocks are checked per topic with the rules of
 ``backwards_tolerance``), and the header stamps also for being one clock across the topics
 (:func:`~fgslam.readers.sanity.common_clock`); with neither sound, a one-line
 :class:`ReaderError` names each clock's first defect and its topic. Messages with sporadic
-bad stamps are handled as going backwards (below). Odometry messages moving faster than the reader's
-:class:`~fgslam.readers.sanity.OdometryLimits` are an error (strict) or skipped and counted
-(tolerant); gaps in the odometry while scans come are counted as holes. Odometry that
+bad stamps are handled as going backwards (below). Odometry messages moving faster than the
+reader's :class:`~fgslam.readers.sanity.OdometryLimits` are skipped and counted, the jump
+dropped (:class:`~fgslam.readers.common.OdometryJumps`), or with ``strict`` an error; gaps in
+the odometry while scans come are counted as holes. Odometry that
 repeats its pose (a frozen stream) and the scans and range readings after it are held and
 spread by :class:`~fgslam.readers.common.StaleOdometryHold` (``stale_spans``,
 ``stale_seconds`` in the odometry notes), as in raw CARMEN logs. Topic names are
@@ -59,6 +60,7 @@ from fgslam.events import (
     own_bearings,
 )
 from fgslam.readers.common import (
+    OdometryJumps,
     ReaderError,
     Source,
     StaleOdometryHold,
@@ -67,7 +69,6 @@ from fgslam.readers.common import (
     compose,
     derived_config,
     input_warnings,
-    relative,
 )
 from fgslam.readers.sanity import (
     BACKWARDS_TOLERANCE,
@@ -76,7 +77,6 @@ from fgslam.readers.sanity import (
     StampReport,
     choose_clock,
     common_clock,
-    implausible,
     stream_defects,
 )
 
@@ -272,8 +272,10 @@ class RosBag(Source):
         timestamps: str = "auto",
         limits: OdometryLimits | None = None,
         backwards_tolerance: float = BACKWARDS_TOLERANCE,
+        strict: bool = False,
     ) -> None:
         super().__init__(path)
+        self.strict = strict  # refuse implausible odometry
         if timestamps not in ROS_CLOCKS:
             raise ReaderError(
                 f"unknown --timestamps {timestamps!r} for a bag; expected one of {ROS_CLOCKS}"
@@ -350,6 +352,7 @@ class RosBag(Source):
         self._odo_notes: dict[str, Any] = {
             "holes": 0,
             "implausible": 0,
+            "rebased": 0,
             "stale_spans": 0,
             "stale_seconds": 0.0,
             "limits": self.limits.notes(),
@@ -482,8 +485,9 @@ class RosBag(Source):
         hold = StaleOdometryHold(drive, self.limits, self._odo_notes)
         pr = self.problems
         last = -math.inf
-        last_odom_pose: tuple[float, float, float] | None = None
-        last_odom_t = last_odo_in = -math.inf  # s: last odometry read, last one used
+        jumps = OdometryJumps(self.limits)  # the odometry poses, implausible ones skipped
+        first_odom = True
+        last_odo_in = -math.inf  # s: the last odometry message used
         in_hole = False
         n_scans = 0
         carried = np.zeros(3)
@@ -514,30 +518,30 @@ class RosBag(Source):
                     pr.skip(f"undecodable {conn.topic}", msg_text)
                     continue
                 if conn.topic == self.odom_topic:
-                    if last_odom_pose is None:
-                        last_odom_pose, last_odom_t = pose, t
+                    inc, why = jumps.step(pose, t)
+                    self._odo_notes["rebased"] = jumps.rebased
+                    if first_odom:
+                        first_odom = False
                         if bad:
                             pr.backwards[conn.topic] += 1
                         else:
                             last = max(last, t)
                         continue
-                    inc = relative(last_odom_pose, pose)
-                    why = implausible(inc, t - last_odom_t, self.limits)
-                    if why is not None:
+                    if inc is None:  # a jump: dropped (OdometryJumps)
                         text = (
                             f"{self.name}: {conn.topic} at t={t:.6f}: implausible odometry: {why}"
                         )
-                        if not self.tolerant:
-                            raise ReaderError(text + " (--tolerant skips such messages)")
+                        if self.strict:
+                            raise ReaderError(
+                                text + " (refused with --strict; without it, skipped and counted)"
+                            )
                         self._odo_notes["implausible"] += 1
                         pr.skip("implausible odometry", text)
                         continue
                     carried = compose(carried, inc)
-                    last_odom_pose = pose
                     if bad:  # carried into the next message, as one going backwards
                         pr.backwards[conn.topic] += 1
                         continue
-                    last_odom_t = t
                     if t < last:
                         pr.backwards[conn.topic] += 1
                         continue
@@ -578,4 +582,6 @@ class RosBag(Source):
                         echoes = (SonarEcho("plane", r, 0.0),)
                     yield from hold.event(SonarReading(t, array_of[conn.topic], 0.0, echoes))
         yield from hold.flush()
-        self.problems.notes["warnings"] = input_warnings(n_scans, drive.travel, self._odo_notes)
+        self.problems.notes["warnings"] = input_warnings(
+            n_scans, drive.travel, self._odo_notes, self.meta.get("timestamps")
+        )

@@ -19,14 +19,19 @@ the reader treats those records as going backwards (a scan is dropped, an odomet
 motion is carried into the next sample). :func:`choose_clock` then takes the first sound
 clock in the reader's order of preference (CARMEN: the ``ipc`` field, else the ``logger``
 field; ROS: header stamps, else record times; native: its one clock), else refuses with one
-line naming each clock's first defect and its line (message, topic); ``--timestamps`` forces
-a choice (``index``, CARMEN and native logs: scan k at ``k * INDEX_PERIOD`` s, the other
-records between two scans spread evenly between them). :func:`common_clock` tells whether
-several streams' stamps run on one clock, against a second clock (a bag's record times).
+line naming each clock's first defect and its line (message, topic), unless the reader allows
+a ``fallback`` (CARMEN and native logs, unless strict: ``index``, the records' order, with
+the reason recorded); ``--timestamps`` forces a choice (``index``, CARMEN and native logs:
+scan k at ``k * INDEX_PERIOD`` s, the other records between two scans spread evenly between
+them). The record of the choice names the clock in words (``"clock"``, for report.json).
+:func:`common_clock` tells whether several streams' stamps run on one clock, against a
+second clock (a bag's record times).
 
 **Odometry.** :func:`implausible` tells whether a pose increment over ``dt`` s exceeds a speed
 or turn-rate bound (with ``MIN_DT`` s of slack, so that stamps too close together are no
-excuse); :class:`OdometryLimits` holds the bounds and the hole tolerance. A *hole* is a gap
+excuse), or, without a clock (``dt`` None: index stamps), a bound on one step's distance
+alone; :func:`usage` is the fraction of the bound an increment takes; :class:`OdometryLimits`
+holds the bounds and the hole tolerance. A *hole* is a gap
 between two odometry records longer than ``hole`` s with scans in it: counted, and its
 samples are stamped at its end, so that the preintegration sees the gap
 (:func:`factors.odometry.preintegrate` adds the hole covariance).
@@ -53,7 +58,9 @@ MIN_DT = 0.25  # s of slack in the plausibility test
 @dataclass(frozen=True)
 class OdometryLimits:
     """Plausible odometry: at most ``max_speed`` m/s and ``max_turn_rate`` rad/s between two
-    records (with :data:`MIN_DT` s of slack); a gap longer than ``hole`` s with scans in it is
+    records (with :data:`MIN_DT` s of slack), or, where the log has no clock (index stamps),
+    at most ``max_step`` m between two records (any turn: a heading is known only modulo a
+    full turn); a gap longer than ``hole`` s with scans in it is
     an odometry hole; odometry that repeats its last pose is held as possibly stale for up to
     ``stale`` s (:class:`fgslam.readers.common.StaleOdometryHold`)."""
 
@@ -61,6 +68,7 @@ class OdometryLimits:
     max_turn_rate: float = 6.0
     hole: float = 1.0
     stale: float = 2.0  # s; MIT CSAIL's freezes last up to 1.07 s
+    max_step: float = 10.0  # m between two odometry records, without a clock
 
     def notes(self) -> dict[str, float]:
         """The bounds as the readers report them (``summary()["odometry"]["limits"]``)."""
@@ -69,13 +77,35 @@ class OdometryLimits:
             "max_turn_rate_rad_s": self.max_turn_rate,
             "hole_s": self.hole,
             "stale_s": self.stale,
+            "max_step_m": self.max_step,
         }
 
 
-def implausible(inc: Any, dt: float, limits: OdometryLimits) -> str | None:
-    """Why the increment (dx, dy, dtheta) over ``dt`` s is implausible, or None."""
+def usage(inc: Any, dt: float | None, limits: OdometryLimits) -> float:
+    """The fraction of the plausible motion that the increment (dx m, dy m, dtheta rad) over
+    ``dt`` s takes (above 1: implausible; NaN counts as infinite): the larger of distance
+    over ``max_speed * (dt + MIN_DT)`` and turn over ``max_turn_rate * (dt + MIN_DT)``; a
+    non-finite ``dt`` (a junk stamp) gets ``MIN_DT`` alone; ``dt`` None (no clock): distance
+    over ``max_step``."""
     dist = math.hypot(float(inc[0]), float(inc[1]))
     turn = abs(float(inc[2]))
+    if dt is None:
+        out = dist / limits.max_step
+    else:
+        span = max(dt, 0.0) + MIN_DT if math.isfinite(dt) else MIN_DT
+        out = max(dist / (limits.max_speed * span), turn / (limits.max_turn_rate * span))
+    return out if math.isfinite(out) and math.isfinite(turn) else math.inf
+
+
+def implausible(inc: Any, dt: float | None, limits: OdometryLimits) -> str | None:
+    """Why the increment (dx m, dy m, dtheta rad) over ``dt`` s is implausible, or None;
+    ``dt`` None: the log has no clock, only the distance of one step is bounded."""
+    dist = math.hypot(float(inc[0]), float(inc[1]))
+    turn = abs(float(inc[2]))
+    if dt is None:
+        if not (dist <= limits.max_step and math.isfinite(turn)):
+            return f"{dist:.3g} m in one step (more than {limits.max_step:g} m; no clock)"
+        return None
     span = max(dt, 0.0) + MIN_DT if math.isfinite(dt) else MIN_DT
     if not (dist <= limits.max_speed * span):
         return f"{dist:.3g} m in {max(dt, 0.0):.3g} s (more than {limits.max_speed:g} m/s)"
@@ -219,15 +249,18 @@ def choose_clock(
     choices: tuple[str, ...] = CLOCKS,
     labels: dict[str, str] | None = None,
     hint: str = "index|ipc|logger",
+    fallback: str | None = None,
 ) -> tuple[str, dict[str, Any]]:
     """The clock to use and the record of the choice (for the reader's metadata).
     ``reports`` maps each clock that can be checked to its defects, in the order of
     preference (CARMEN: ``ipc``, ``logger``; ROS: ``header``, ``bag``; native: ``log``);
     ``choices`` are the values ``requested`` may take (``auto`` among them); ``labels`` name
     the clocks in the error (default ``"<clock> field"``), ``hint`` the ``--timestamps``
-    values it suggests. Raises :class:`~fgslam.readers.common.ReaderError` when
-    ``requested`` is ``auto`` and no clock is sound."""
-    from fgslam.readers.common import ReaderError
+    values it suggests. When ``requested`` is ``auto`` and no clock is sound, ``fallback``
+    is used (``index``: the records' order; the record's ``fallback`` says why), or without
+    one :class:`~fgslam.readers.common.NoUsableClock` (a ``ReaderError``) is raised. The
+    record's ``clock`` names the clock used and why, in words (for report.json)."""
+    from fgslam.readers.common import NoUsableClock, ReaderError
 
     if requested not in choices:
         raise ReaderError(f"unknown --timestamps {requested!r}; expected one of {choices}")
@@ -236,21 +269,33 @@ def choose_clock(
         "requested": requested,
         "defects": {k: list(r.defects) for k, r in reports.items() if r.defects},
     }
+
+    def label(k: str) -> str:
+        return labels.get(k, f"{k} field")
+
     if requested == "auto":
         for clock, rep in reports.items():
             if rep.sound:
                 chosen = clock
+                why = [f"{label(clock)}, sound"]
+                why += [f"{label(k)}: {r.defects[0]}" for k, r in reports.items() if r.defects]
                 break
         else:
-            what = "; ".join(
-                f"{labels.get(k, f'{k} field')}: {r.defects[0]}" for k, r in reports.items()
-            )
-            raise ReaderError(
-                f"{name}: no usable timestamps ({what}); choose with --timestamps {hint}"
-            )
+            what = "; ".join(f"{label(k)}: {r.defects[0]}" for k, r in reports.items())
+            if fallback is None:
+                raise NoUsableClock(
+                    f"{name}: no usable timestamps ({what}); choose with --timestamps {hint}"
+                )
+            chosen = fallback
+            record["fallback"] = f"no usable timestamps ({what})"
+            why = [f"no usable stamps: {what}"]
     else:
         chosen = requested
+        why = [f"--timestamps {chosen}"]
+    if chosen == "index":
+        why.append(f"record order, scans {INDEX_PERIOD:g} s apart")
     record["used"] = chosen
+    record["clock"] = f"{chosen} ({'; '.join(why)})"
     if chosen == "index":
         record["index_period_s"] = INDEX_PERIOD
     elif chosen in reports:
