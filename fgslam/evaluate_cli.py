@@ -167,6 +167,12 @@ def evaluate_command(args: argparse.Namespace) -> dict[str, Any]:
             f"ATE (SE(2)-aligned): RMSE {a['rmse']:.3f} m, mean {a['mean']:.3f} m, "
             f"max {a['max']:.3f} m, heading RMSE {a['heading_rmse_deg']:.2f} deg"
         )
+    elif "ate_unaligned" in rep:  # too few poses to align
+        a = rep["ate_unaligned"]
+        lines.append(
+            f"ATE (not aligned): RMSE {a['rmse']:.3f} m, max {a['max']:.3f} m, "
+            f"heading RMSE {a['heading_rmse_deg']:.2f} deg"
+        )
     if "rpe" in rep:
         r = rep["rpe"]
         lines.append(
