@@ -570,6 +570,8 @@ def _result(
         st.update(sess.loops.stats)
     if sess.failed is not None:  # after the updates: Counter cannot add a dict
         st["partial"] = dict(sess.failed)
+    if getattr(sess.be, "repairs", None):  # what the graph's guard did, one line each
+        st["graph_repair_log"] = list(sess.be.repairs)
     batch_seconds = be.seconds if isinstance(be, BatchSmoother) else 0.0
     sess_wall = sess.wall + batch_seconds
     times = np.array([p[0] for p in traj])
