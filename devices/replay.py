@@ -15,33 +15,48 @@ from typing import Any
 
 from devices.driver import Measurement, Receiver
 from devices.odometry import OdometryReceiver
-from devices.raw import RawReader
+from devices.raw import RawFormatError, RawReader, integer, show
 from devices.sick import SickReceiver
 from devices.sonar import SonarReceiver
 
+DEVICE_KINDS = ("sick-pls", "sonar", "odometry")
+MAX_ARRAY = 255  # a sonar array's index (its INFO device id is one byte)
+
 
 def make_receiver(header: dict[str, Any]) -> Receiver:
-    """The receiver for a recording's header (its ``device`` kind and options)."""
+    """The receiver for a recording's header (its ``device`` kind and options):
+    RawFormatError for a kind not in :data:`DEVICE_KINDS`, a ``device_clock`` that is not a
+    boolean, an ``array`` that is not an integer in 0..:data:`MAX_ARRAY`."""
     kind = header.get("device")
-    clock = bool(header.get("device_clock", True))
+    if not isinstance(kind, str) or kind not in DEVICE_KINDS:
+        raise RawFormatError(f"unknown device kind {show(kind)} (known: {', '.join(DEVICE_KINDS)})")
+    clock = header.get("device_clock", True)
+    if not isinstance(clock, bool):
+        raise RawFormatError(f"device_clock must be true or false, got {show(clock)}")
     if kind == "sick-pls":
         return SickReceiver()
     if kind == "sonar":
-        return SonarReceiver(int(header.get("array", 0)), clock)
-    if kind == "odometry":
-        return OdometryReceiver(clock)
-    raise ValueError(f"unknown device kind {kind!r} in raw recording header")
+        try:
+            array = integer(header.get("array", 0), "array", 0, MAX_ARRAY)
+        except ValueError as exc:
+            raise RawFormatError(str(exc)) from None
+        return SonarReceiver(array, clock)
+    return OdometryReceiver(clock)
 
 
 class ReplayFile:
     """Measurements of one raw file, in the order the driver produced them. After
-    iteration: ``reader.truncated``, ``reader.skipped_bytes`` and ``receiver.counters()``."""
+    iteration: ``reader.truncated``, ``reader.skipped_bytes`` and ``receiver.counters()``.
+    RawFormatError (naming the file) for a bad file, header or record."""
 
     def __init__(self, path: str | os.PathLike[str]) -> None:
         self.path = Path(path)
         self.reader = RawReader(path)
         self.header = self.reader.header
-        self.receiver = make_receiver(self.header)
+        try:
+            self.receiver = make_receiver(self.header)
+        except RawFormatError as exc:
+            raise RawFormatError(f"{path}, line 2 (header): {exc}") from None
 
     def __iter__(self) -> Iterator[Measurement]:
         rcv = self.receiver
@@ -50,15 +65,12 @@ class ReplayFile:
                 for item in rcv.feed(rec.t, rec.data):
                     if isinstance(item, Measurement):
                         yield item
-            elif rec.tag == "M":
-                try:
-                    mark = rec.marker
-                    if mark.get("event") == "open":
-                        rcv.reset(int(mark["baud"]))
-                    elif mark.get("event") == "baud":
-                        rcv.set_baud(int(mark["baud"]))
-                except (ValueError, KeyError, TypeError):
-                    continue  # a damaged marker: keep decoding with the current state
+            elif rec.tag == "M":  # checked by the reader: a known event, a plausible baud
+                mark = rec.marker
+                if mark["event"] == "open":
+                    rcv.reset(mark["baud"])
+                elif mark["event"] == "baud":
+                    rcv.set_baud(mark["baud"])
 
 
 def replay_dir(

@@ -44,7 +44,7 @@ from devices.emulators import (
     SonarEmulator,
 )
 from devices.odometry import OdometryBoard, OdometryFrame
-from devices.raw import RawFormatError, RawRecorder
+from devices.raw import RawFormatError, RawRecorder, show
 from devices.replay import ReplayFile
 from devices.sick import FIRST_SPECIAL, LaserFrame, SickPLS
 from devices.sonar import SonarArray, SonarFrame
@@ -547,7 +547,10 @@ def _action(ev: Event, emu: Emulation) -> Callable[[float], Any]:
 
 
 def read_session(raw_dir: str | Path) -> dict[str, Any]:
-    """The ``session.json`` of a raw directory ({} if there is none); UserError if bad."""
+    """The ``session.json`` of a raw directory ({} if there is none); UserError if bad: not
+    JSON, not a session, or a ``world`` that is not one line of text, a ``clock_speed`` that
+    is not a positive finite number, a ``meta`` that is not an object of finite values, a
+    ``config`` that is not an object (its content is checked by :func:`session_config`)."""
     path = Path(raw_dir) / SESSION_FILE
     if not Path(raw_dir).is_dir():
         raise UserError(f"{raw_dir}: not a directory")
@@ -555,10 +558,27 @@ def read_session(raw_dir: str | Path) -> dict[str, Any]:
         return {}
     try:
         data = json.loads(path.read_text("utf-8"))
+    except RecursionError:
+        raise UserError(f"{path}: cannot read session file (nested too deeply)") from None
     except (OSError, ValueError) as exc:
         raise UserError(f"{path}: cannot read session file ({exc})") from None
     if not isinstance(data, dict) or data.get("format") != SESSION_FORMAT:
         raise UserError(f"{path}: not an fgslam raw session file")
+    world = data.get("world", "online")
+    if not isinstance(world, str) or "\n" in world or "\r" in world:
+        raise UserError(f"{path}: world must be one line of text, got {show(world)}")
+    speed = data.get("clock_speed", 1.0)
+    if isinstance(speed, bool) or not isinstance(speed, int | float) or not 0 < speed < math.inf:
+        raise UserError(f"{path}: clock_speed must be a positive number, got {show(speed)}")
+    meta = data.get("meta") or {}
+    try:
+        if not isinstance(meta, dict):
+            raise ValueError("not an object")
+        json.dumps(meta, allow_nan=False)
+    except ValueError as exc:
+        raise UserError(f"{path}: meta must be an object of finite values ({exc})") from None
+    if not isinstance(data.get("config", {}), dict | None):
+        raise UserError(f"{path}: config must be an object, got {show(data['config'])}")
     return data
 
 
