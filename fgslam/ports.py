@@ -549,8 +549,8 @@ def _action(ev: Event, emu: Emulation) -> Callable[[float], Any]:
 def read_session(raw_dir: str | Path) -> dict[str, Any]:
     """The ``session.json`` of a raw directory ({} if there is none); UserError if bad: not
     JSON, not a session, or a ``world`` that is not one line of text, a ``clock_speed`` that
-    is not a positive finite number, a ``meta`` that is not an object of finite values, a
-    ``config`` that is not an object (its content is checked by :func:`session_config`)."""
+    is not a positive finite number, a ``meta`` that is not an object of finite values (the
+    ``config`` is checked by :func:`session_config`)."""
     path = Path(raw_dir) / SESSION_FILE
     if not Path(raw_dir).is_dir():
         raise UserError(f"{raw_dir}: not a directory")
@@ -577,8 +577,6 @@ def read_session(raw_dir: str | Path) -> dict[str, Any]:
         json.dumps(meta, allow_nan=False)
     except ValueError as exc:
         raise UserError(f"{path}: meta must be an object of finite values ({exc})") from None
-    if not isinstance(data.get("config", {}), dict | None):
-        raise UserError(f"{path}: config must be an object, got {show(data['config'])}")
     return data
 
 
