@@ -730,10 +730,13 @@ class GraphSolution:
         except RuntimeError:  # an ill-conditioned final graph: report no covariances
             return None
         out = []
-        for k in range(len(self.times)):
-            C = m.marginalCovariance(X(k))
-            R = _rot_block(self.values.atPose2(X(k)).theta())
-            out.append(R @ C @ R.T)
+        try:  # a fallback factorisation may still refuse a query: report no covariances
+            for k in range(len(self.times)):
+                C = m.marginalCovariance(X(k))
+                R = _rot_block(self.values.atPose2(X(k)).theta())
+                out.append(R @ C @ R.T)
+        except RuntimeError:
+            return None
         return out
 
     def calibration(self) -> tuple[NDArray[np.float64], NDArray[np.float64] | None] | None:
@@ -757,7 +760,10 @@ class GraphSolution:
             if not self.values.exists(L(lid)):
                 continue
             R = models.KINDS[kind].tangent_to_world(models.KINDS[kind].read(self.values, L(lid)))
-            out[lid] = R @ m.marginalCovariance(L(lid)) @ R.T
+            try:
+                out[lid] = R @ m.marginalCovariance(L(lid)) @ R.T
+            except RuntimeError:  # this landmark's marginal refused: left out
+                continue
         return out
 
 
