@@ -118,6 +118,41 @@ def _stamp(msg: Any) -> float:
     return float(s.sec) + 1e-9 * float(s.nanosec)
 
 
+def bag_messages(reader: Any, conns: Sequence[Any], name: str) -> Iterator[tuple[Any, int, bytes]]:
+    """``reader.messages(connections=conns)`` with the library's failures on a damaged bag
+    (a chunk, index or record it cannot read: rosbags' own errors, but also AssertionError,
+    KeyError, UnicodeDecodeError, sqlite and decompression errors from deep inside it) turned
+    into a :class:`ReaderError` naming the file and the message (counted from 1 in the bag's
+    order over ``conns``). Only the library's iteration is guarded: the caller's code runs
+    outside it."""
+    if not conns:
+        return
+    count = 0
+    try:
+        it = reader.messages(connections=conns)
+    except Exception as exc:  # the library, on the file's bytes
+        raise ReaderError(f"{name}: cannot read the bag's messages ({_cause(exc)})") from None
+    while True:
+        try:
+            item = next(it)
+        except StopIteration:
+            return
+        except Exception as exc:  # the library, on the file's bytes
+            raise ReaderError(
+                f"{name}: cannot read message {count + 1} of the bag ({_cause(exc)}); "
+                "a damaged or truncated bag (a ROS 1 bag cut off while recording may read "
+                "after `rosbag reindex`)"
+            ) from None
+        count += 1
+        yield item
+
+
+def _cause(exc: BaseException) -> str:
+    """One line: the exception's type and the first line of its message."""
+    text = str(exc).strip()
+    return f"{type(exc).__name__}: {text.splitlines()[0][:200]}" if text else type(exc).__name__
+
+
 def _yaw(q: Any) -> float:
     return math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
 
@@ -208,7 +243,7 @@ class TfTree:
 
 
 def tf_mount(
-    reader: Any, scan_frame: str, bases: Sequence[str]
+    reader: Any, scan_frame: str, bases: Sequence[str], name: str = "bag"
 ) -> tuple[tuple[float, float, float] | None, str]:
     """The pose (x m, y m, yaw rad) of the laser frame ``scan_frame`` in the robot's frame,
     the first of ``bases`` that the bag's tf topics connect to it (static topics whole, then
@@ -235,7 +270,7 @@ def tf_mount(
     static = [c for c in topics if "static" in c.topic]
     dynamic = [c for c in topics if "static" not in c.topic]
     for conns, limit in ((static, math.inf), (dynamic, TF_MESSAGES)):
-        for count, (conn, _, raw) in enumerate(reader.messages(connections=conns) if conns else ()):
+        for count, (conn, _, raw) in enumerate(bag_messages(reader, conns, name)):
             if count >= limit:
                 break
             try:
@@ -295,7 +330,7 @@ class RosBag(Source):
             first = self._clock_pass(reader)
             mount_note: dict[str, Any] = {"source": "laser_mount option"}
             if first is not None and laser_mount is None:
-                tf, why = tf_mount(reader, first.header.frame_id, self._bases(reader))
+                tf, why = tf_mount(reader, first.header.frame_id, self._bases(reader), self.name)
                 laser_mount = tf or (0.0, 0.0, 0.0)
                 mount_note = {"source": "tf" if tf else "robot origin", "tf": why}
         if first is None:
@@ -370,7 +405,7 @@ class RosBag(Source):
         count = dict.fromkeys(wanted, 0)
         first = None
         conns = [c for c in reader.connections if c.topic in wanted]
-        for conn, bag_ns, raw in reader.messages(connections=conns):
+        for conn, bag_ns, raw in bag_messages(reader, conns, self.name):
             count[conn.topic] += 1
             try:
                 msg = reader.deserialize(raw, conn.msgtype)
@@ -389,7 +424,7 @@ class RosBag(Source):
         """The robot's frame candidates: the odometry's child frame, then ``BASE_FRAMES``."""
         out = []
         conns = [c for c in reader.connections if c.topic == self.odom_topic]
-        for conn, _, raw in reader.messages(connections=conns):
+        for conn, _, raw in bag_messages(reader, conns, self.name):
             try:
                 child = reader.deserialize(raw, conn.msgtype).child_frame_id.strip("/ ")
             except Exception:  # the reading pass reports it
@@ -456,8 +491,8 @@ class RosBag(Source):
             reader = self._AnyReader([Path(self.path)], default_typestore=self._typestore)
             reader.open()
             reader.close()
-        except (self._AnyReaderError, OSError, ValueError, KeyError) as exc:
-            raise ReaderError(f"{self.name}: cannot read the bag ({exc})") from None
+        except Exception as exc:  # the library, on the file's bytes (any of its failures)
+            raise ReaderError(f"{self.name}: cannot read the bag ({_cause(exc)})") from None
         return reader
 
     def _pick(self, topics: dict[str, str], name: str | None, msgtype: str, option: str) -> str:
@@ -496,7 +531,7 @@ class RosBag(Source):
         with self._open() as reader:
             conns = [c for c in reader.connections if c.topic in wanted]
             count = dict.fromkeys(wanted, 0)
-            for conn, bag_ns, raw in reader.messages(connections=conns):
+            for conn, bag_ns, raw in bag_messages(reader, conns, self.name):
                 count[conn.topic] += 1
                 bad = (conn.topic, count[conn.topic]) in self._bad  # a sporadic bad stamp
                 try:
