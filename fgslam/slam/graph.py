@@ -27,6 +27,7 @@ query that fails falls back to the separate marginals, then to a wide covariance
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import re
 import time
@@ -88,10 +89,26 @@ def _prior(key: int, value: object, noise: gtsam.noiseModel.Base) -> gtsam.Nonli
     return gtsam.PriorFactorVector(key, np.asarray(value, dtype=float), noise)
 
 
+def isam2_params(
+    factorization: str, relinearize_threshold: float = 0.1, relinearize_skip: int = 10
+) -> gtsam.ISAM2Params:
+    """iSAM2's parameters: ``factorization`` "QR" or "CHOLESKY" (docs/robustness.md: QR
+    where Cholesky's pivot heuristic declares a sound system indeterminate)."""
+    params = gtsam.ISAM2Params()
+    params.setRelinearizeThreshold(relinearize_threshold)
+    params.relinearizeSkip = relinearize_skip
+    params.setFactorization(factorization)
+    return params
+
+
 def _culprit(reason: str) -> int | None:
     """The key GTSAM named in an indeterminate-system message ("... (Symbol: l160)")."""
     m = re.search(r"Symbol: ([a-zA-Z])(\d+)", reason)
     return gtsam.symbol(m.group(1), int(m.group(2))) if m else None
+
+
+# the robot's poses are Pose2 variables like a corner's; the calibration is a plain vector
+POSE_VARIABLE = dataclasses.replace(models.KINDS["corner"], name="pose")
 
 
 def _key_name(key: int) -> str:
@@ -174,12 +191,8 @@ class GraphBackend(Backend):
         self._final = False  # _est is the converged final estimate
         self.failed: str | None = None
         self._start_cov = np.eye(3)
-        params = gtsam.ISAM2Params()
-        params.setRelinearizeThreshold(relinearize_threshold)
-        params.relinearizeSkip = relinearize_skip
-        params.setFactorization(factorization)
-        self._params = params
-        self.isam = gtsam.ISAM2(params)
+        self._params = isam2_params(factorization, relinearize_threshold, relinearize_skip)
+        self.isam = gtsam.ISAM2(self._params)
         # what the guard did (docs/robustness.md): one line per repair or fallback, and the
         # landmarks removed by a repair (the map manager takes them out: take_removed)
         self.repairs: list[str] = []
@@ -450,15 +463,7 @@ class GraphBackend(Backend):
         for key in keys:
             if not isam.valueExists(key):
                 continue
-            sym = gtsam.Symbol(key)
-            if sym.chr() == ord("x"):
-                p = isam.calculateEstimatePose2(key)
-                v = np.array([p.x(), p.y(), p.theta()])
-            elif key == C:
-                v = np.asarray(isam.calculateEstimateVector(key))
-            else:
-                v = models.KINDS[self.kinds[sym.index()]].read_isam(isam, key)
-            if not np.all(np.isfinite(v)):
+            if not np.all(np.isfinite(self._kind(key).read_isam(isam, key))):
                 return key
         return None
 
@@ -563,27 +568,26 @@ class GraphBackend(Backend):
         """A copy of ``base`` without the keys ``drop``."""
         values = gtsam.Values()
         for key in base.keys():
-            if key in drop:
-                continue
-            sym = gtsam.Symbol(key)
-            if sym.chr() == ord("x"):
-                values.insert(key, base.atPose2(key))
-            elif key == C:
-                values.insert(key, base.atVector(key))
-            else:
-                kind = models.KINDS[self.kinds[sym.index()]]
+            if key not in drop:
+                kind = self._kind(key)
                 values.insert(key, kind.value(kind.read(base, key)))
         return values
 
     def _weak_prior(self, key: int, values: gtsam.Values) -> gtsam.NonlinearFactor:
+        kind = self._kind(key)
+        return _prior(key, kind.value(kind.read(values, key)), weak_noise(kind.dim))
+
+    def _kind(self, key: int) -> models.Kind:
+        """How variable ``key`` is stored: a pose, the calibration vector or a landmark."""
         sym = gtsam.Symbol(key)
         if sym.chr() == ord("x"):
-            return gtsam.PriorFactorPose2(key, values.atPose2(key), weak_noise(3))
+            return POSE_VARIABLE
         if key == C:
-            v = np.asarray(values.atVector(key))
-            return gtsam.PriorFactorVector(key, v, weak_noise(len(v)))
-        kind = models.KINDS[self.kinds[sym.index()]]
-        return _prior(key, kind.value(kind.read(values, key)), weak_noise(kind.dim))
+            n = self.cal.dim
+            return dataclasses.replace(
+                models.KINDS["point"], name="calibration", dim=n, angular=(False,) * n
+            )
+        return models.KINDS[self.kinds[sym.index()]]
 
     def joint_covariance(self, keys: list[int]) -> NDArray[np.float64]:
         """iSAM2's joint marginal covariance of ``keys`` (tangent spaces); when GTSAM cannot
@@ -598,17 +602,8 @@ class GraphBackend(Backend):
             try:
                 blocks.append(np.asarray(self.isam.marginalCovariance(key)))
             except RuntimeError:
-                n = self._dim(key)
-                blocks.append(np.eye(n) * FALLBACK_VARIANCE)
+                blocks.append(np.eye(self._kind(key).dim) * FALLBACK_VARIANCE)
         return _blockdiag(blocks)
-
-    def _dim(self, key: int) -> int:
-        sym = gtsam.Symbol(key)
-        if sym.chr() == ord("x"):
-            return 3
-        if key == C:
-            return self.cal.dim
-        return models.DIM[self.kinds[sym.index()]]
 
     # ------------------------------------------------------------------ results
 
@@ -700,9 +695,7 @@ class GraphSolution:
             try:
                 self._marg = gtsam.Marginals(self.graph, self.values)
             except RuntimeError:
-                params = gtsam.ISAM2Params()
-                params.setFactorization("QR")
-                isam = gtsam.ISAM2(params)
+                isam = gtsam.ISAM2(isam2_params("QR"))
                 isam.update(self.graph, self.values)
                 self._marg = isam
         return self._marg
