@@ -420,3 +420,106 @@ def replay_outcome(raw_dir: str | Path, out: str | Path) -> Outcome:
     if status == 2 and len(lines) == 1 and lines[0].startswith("fgslam replay: error: "):
         return Outcome("refused", 2, lines[0])
     return Outcome("odd", status, err.getvalue()[:300])
+
+
+# -- evaluation inputs: TUM trajectories and relations files (fgslam evaluate)
+
+EVAL_TOKENS = (
+    "nan", "inf", "-inf", "1e308", "-1e308", "1e300", "1e200", "1e155", "1e10", "1e7", "0",
+    "-0.0", "1e-300", "x", "#", "", "1_0", "\x00",
+)  # fmt: skip
+
+
+def tum_text(n: int = 20) -> str:
+    """A valid TUM trajectory of ``n`` poses 0.5 s apart (a curve, yaw quaternions)."""
+    import math
+
+    rows = []
+    for k in range(n):
+        x, y, th = 0.3 * k, 0.02 * k * k, 0.05 * k
+        rows.append(f"{0.5 * k!r} {x!r} {y!r} 0 0 0 {math.sin(th / 2)!r} {math.cos(th / 2)!r}")
+    return "\n".join(rows) + "\n"
+
+
+def relations_text(n: int = 20) -> str:
+    """Valid relations (``t1 t2 x y z roll pitch yaw``) between poses k and k + 2 of
+    :func:`tum_text`'s trajectory."""
+    import math
+
+    rows = []
+    for k in range(n - 2):
+        a = (0.3 * k, 0.02 * k * k, 0.05 * k)
+        b = (0.3 * (k + 2), 0.02 * (k + 2) ** 2, 0.05 * (k + 2))
+        c, s = math.cos(a[2]), math.sin(a[2])
+        dx, dy = b[0] - a[0], b[1] - a[1]
+        rows.append(
+            f"{0.5 * k!r} {0.5 * (k + 2)!r} {c * dx + s * dy!r} {-s * dx + c * dy!r} 0 0 0 "
+            f"{b[2] - a[2]!r}"
+        )
+    return "\n".join(rows) + "\n"
+
+
+def mutate_lines(text: str, rng: random.Random, count: int = 3) -> tuple[str, str]:
+    """A text file of whitespace-separated fields with ``count`` mutations (a field replaced
+    by one of :data:`EVAL_TOKENS`, a field dropped or added, a line repeated, removed or
+    swapped with another): (description, mutated text)."""
+    lines = [ln.split() for ln in text.splitlines()]
+    done = []
+    for _ in range(count):
+        if not lines:
+            break
+        k = rng.randrange(len(lines))
+        op = rng.choice(["token", "token", "token", "drop", "add", "dup", "del", "swap"])
+        if op == "token" and lines[k]:
+            i, tok = rng.randrange(len(lines[k])), rng.choice(EVAL_TOKENS)
+            lines[k][i] = tok
+            done.append(f"line {k + 1} field {i + 1} = {tok!r}")
+        elif op == "drop" and lines[k]:
+            del lines[k][rng.randrange(len(lines[k]))]
+            done.append(f"line {k + 1} a field dropped")
+        elif op == "add":
+            lines[k].append(rng.choice(EVAL_TOKENS))
+            done.append(f"line {k + 1} a field added")
+        elif op == "dup":
+            lines.insert(k, list(lines[k]))
+            done.append(f"line {k + 1} repeated")
+        elif op == "del":
+            del lines[k]
+            done.append(f"line {k + 1} removed")
+        elif op == "swap":
+            j = rng.randrange(len(lines))
+            lines[k], lines[j] = lines[j], lines[k]
+            done.append(f"lines {k + 1} and {j + 1} swapped")
+    return "; ".join(done), "\n".join(" ".join(ln) for ln in lines) + "\n"
+
+
+def mutated_eval_inputs(seed: int, count: int) -> Iterator[tuple[str, str, str]]:
+    """``count`` mutants ``(kind, description, text)`` of :func:`tum_text` (kind "tum") and
+    :func:`relations_text` (kind "relations"); the same seed gives the same mutants."""
+    rng = random.Random(seed)
+    for _ in range(count):
+        kind = rng.choice(["tum", "relations"])
+        base = tum_text() if kind == "tum" else relations_text()
+        desc, text = mutate_lines(base, rng, rng.randint(1, 4))
+        yield kind, desc, text
+
+
+def evaluate_outcome(args: list[str]) -> Outcome:
+    """Run ``fgslam evaluate ARGS`` in this process and classify it as :func:`replay_outcome`
+    does ("evaluated" for status 0)."""
+    from fgslam.cli import main
+
+    err = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+            status = main(["evaluate", *args])
+    except Exception as exc:  # what the experiment counts: any exception that escaped
+        last = traceback.extract_tb(exc.__traceback__)[-1]
+        where = f"{Path(last.filename).name}:{last.lineno}"
+        return Outcome("traceback", None, f"{type(exc).__name__} at {where}: {exc}"[:300])
+    lines = err.getvalue().strip().splitlines()
+    if status == 0:
+        return Outcome("evaluated", 0, "")
+    if status == 2 and len(lines) == 1 and lines[0].startswith("fgslam evaluate: error: "):
+        return Outcome("refused", 2, lines[0])
+    return Outcome("odd", status, err.getvalue()[:300])

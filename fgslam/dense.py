@@ -76,13 +76,51 @@ def dense_poses(
     return compose_poses(kp[i], rel)
 
 
+RELATION_FIELDS = ("t1", "t2", "x", "y", "z", "roll", "pitch", "yaw")
+RELATION_MAX_STAMP = 1e10  # s; beyond, not a time (as a TUM stamp or a log's)
+RELATION_MAX_TRANSLATION = 1e6  # m; beyond, not a robot's motion (the benchmark's: < 100 m)
+RELATION_MAX_ANGLE = 1e3  # rad (160 turns); beyond, not a rotation
+
+
 def read_relations(path: str | Path) -> NDArray[np.float64]:
     """Rows ``(t1, t2, x, y, yaw)`` of a relations file (``t1 t2 x y z roll pitch yaw`` per
-    line, ``#`` comments): the true pose at t2 in the frame of the pose at t1."""
-    data = np.loadtxt(path, comments="#", ndmin=2)
-    if data.shape[1] != 8 or not np.all(np.isfinite(data)):
-        raise ValueError(f"{path}: expected 8 finite columns (t1 t2 x y z roll pitch yaw)")
-    return data[:, [0, 1, 2, 3, 7]]
+    line, ``#`` comments): the true pose at t2 in the frame of the pose at t1.
+
+    ValueError naming the line (``line N: ...``; the caller names the file) for a wrong
+    field count, a non-number, a value that is not finite or not plausible (a time beyond
+    :data:`RELATION_MAX_STAMP` s, a translation beyond :data:`RELATION_MAX_TRANSLATION` m,
+    an angle beyond :data:`RELATION_MAX_ANGLE` rad), or a file without relations."""
+    rows = []
+    with open(path, encoding="utf-8", errors="replace") as fh:
+        for lineno, line in enumerate(fh, 1):
+            tok = line.split("#", 1)[0].split()
+            if not tok:
+                continue
+            if len(tok) != 8:
+                raise ValueError(
+                    f"line {lineno}: expected 8 fields (t1 t2 x y z roll pitch yaw), got {len(tok)}"
+                )
+            try:
+                row = [float(x) for x in tok]
+            except ValueError:
+                raise ValueError(f"line {lineno}: not a number in {line.strip()[:60]!r}") from None
+            for k, (name, v) in enumerate(zip(RELATION_FIELDS, row, strict=True)):
+                top, unit = (
+                    (RELATION_MAX_STAMP, "s")
+                    if k < 2
+                    else (RELATION_MAX_TRANSLATION, "m")
+                    if k < 5
+                    else (RELATION_MAX_ANGLE, "rad")
+                )
+                if not abs(v) <= top:
+                    raise ValueError(
+                        f"line {lineno}: field {name}: {v!r} is not plausible "
+                        f"(finite, at most {top:g} {unit})"
+                    )
+            rows.append(row)
+    if not rows:
+        raise ValueError("no relations (lines t1 t2 x y z roll pitch yaw)")
+    return np.array(rows, dtype=float)[:, [0, 1, 2, 3, 7]]
 
 
 def relation_scan_pairs(
@@ -195,8 +233,25 @@ def _within(r: NDArray, lo: float, hi: float) -> NDArray:
 
 
 def _metrics(d: NDArray, used: NDArray, n: int) -> dict:
-    tr = np.hypot(d[:, 0] - used[:, 2], d[:, 1] - used[:, 3])
-    rot = np.degrees(np.abs(wrap_angles(d[:, 2] - used[:, 4])))
+    """The relations metric's figures; EvaluationError (a ValueError) when an estimated
+    relative pose is not finite or the errors overflow (no inf or NaN in a report)."""
+    from fgslam.errors import EvaluationError
+
+    with np.errstate(over="ignore", invalid="ignore"):
+        tr = np.hypot(d[:, 0] - used[:, 2], d[:, 1] - used[:, 3])
+        rot = np.degrees(np.abs(wrap_angles(d[:, 2] - used[:, 4])))
+        sums = np.array([np.sum(tr**2), tr.std(), np.sum(rot**2), rot.std()])
+    bad = ~(np.isfinite(tr) & np.isfinite(rot))
+    if bad.any():
+        k = int(np.argmax(bad))
+        raise EvaluationError(
+            f"the estimate's relative pose over relation t1 = {used[k, 0]:.6f}, "
+            f"t2 = {used[k, 1]:.6f} s is not finite ({int(bad.sum())} of {len(used)} relations)"
+        )
+    if not np.isfinite(sums).all():
+        raise EvaluationError(
+            f"the relations error overflows (errors up to {float(tr.max()):.3g} m)"
+        )
     return {
         "relations": n,
         "relations_used": len(used),

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -35,14 +36,34 @@ def _looks_like_tum(path: Path) -> bool:
     return False
 
 
+MAX_HEADING = 1e7  # rad: a log's heading beyond is not one (as the CARMEN reader's poses)
+
+
 def _read_tum(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """A TUM trajectory (:func:`evaluation.read_tum`, stamps in order); UserError naming the
+    file, and the line, for anything it cannot hold."""
     try:
-        t, p = evaluation.read_tum(path)
+        return evaluation.read_tum(path, ordered=True)
     except (ValueError, OSError) as exc:
         raise UserError(f"{path}: not a TUM trajectory ({exc})") from None
-    if np.any(np.diff(t) < 0):
-        raise UserError(f"{path}: timestamps go backwards")
-    return t, p
+
+
+def _check_reference(path: str | Path, t: np.ndarray, poses: np.ndarray) -> None:
+    """A log's truth or reference poses hold what a TUM file may (:func:`evaluation.read_tum`):
+    UserError naming the file and the pose's time for a value that is not finite or not
+    plausible (a position beyond ``evaluation.TUM_MAX_POSITION`` m, a heading beyond
+    :data:`MAX_HEADING` rad)."""
+    top = evaluation.TUM_MAX_POSITION
+    with np.errstate(invalid="ignore"):
+        ok = (np.abs(poses[:, :2]) <= top).all(axis=1) & (np.abs(poses[:, 2]) <= MAX_HEADING)
+    bad = ~(ok & np.isfinite(t))
+    if bad.any():
+        k = int(np.argmax(bad))
+        raise UserError(
+            f"{path}: truth or reference pose at t = {float(t[k])!r} s: "
+            f"({', '.join(repr(float(v)) for v in poses[k])}) is not a pose (finite, "
+            f"positions at most {top:g} m, heading at most {MAX_HEADING:g} rad)"
+        )
 
 
 def load_reference(path: str | Path, **options: Any) -> tuple[np.ndarray, np.ndarray, dict, str]:
@@ -63,8 +84,49 @@ def load_reference(path: str | Path, **options: Any) -> tuple[np.ndarray, np.nda
             last = ev.t
     if len(t) < 2:
         raise UserError(f"{path}: the log has no truth or reference poses")
+    t_a, poses_a = np.array(t, dtype=float), np.array(poses, dtype=float)
+    _check_reference(path, t_a, poses_a)
     kind = getattr(reader, "reference_kind", None) or "ground truth"
-    return np.array(t), np.array(poses), reader.meta.get("true_map") or {}, kind
+    return t_a, poses_a, reader.meta.get("true_map") or {}, kind
+
+
+def _finite_number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _map_error(map_path: Path, true_map: Any, reference: str | Path) -> dict[str, Any]:
+    """:func:`evaluation.map_error` of a map.json's landmarks against a log's true map;
+    UserError naming the file and the landmark (or feature) for one it cannot compare (not
+    an object, a field missing or not a finite number)."""
+    try:
+        landmarks = json.loads(map_path.read_text(encoding="utf-8"))["landmarks"]
+    except (OSError, ValueError, KeyError, TypeError, RecursionError) as exc:
+        raise UserError(f"{map_path}: not a map.json ({exc!r})") from None
+    fields = {"line": ("alpha", "d"), "corner": ("x", "y"), "point": ("x", "y")}
+
+    def check(items: Any, where: str, kind: str | None = None) -> None:
+        if not isinstance(items, list):
+            raise UserError(f"{where}: expected a list")
+        for k, lm in enumerate(items):
+            what = kind or (lm.get("kind") if isinstance(lm, dict) else None)
+            need = fields.get(what, ()) if isinstance(what, str) else ()
+            if not isinstance(lm, dict) or not all(_finite_number(lm.get(f)) for f in need):
+                raise UserError(
+                    f"{where} {k}: {str(lm)[:80]} is not a landmark "
+                    f"({', '.join(need) or 'fields'}: finite numbers)"
+                )
+
+    check(landmarks, f"{map_path}: landmark")
+    if not isinstance(true_map, dict):
+        raise UserError(f"{reference}: the true map is not an object")
+    for key, kind in (("lines", "line"), ("corners", "corner"), ("points", "point")):
+        check(true_map.get(key, []), f"{reference}: true map {key[:-1]}", kind)
+    with np.errstate(over="ignore", invalid="ignore"):
+        out = evaluation.map_error(landmarks, true_map)
+    for k, v in out.items():
+        if not all(math.isfinite(x) for x in v.values()):
+            raise UserError(f"{map_path}: the map error ({k}) overflows")
+    return out
 
 
 def relations_report(
@@ -77,6 +139,8 @@ def relations_report(
     from fgslam import dense
 
     t_est, est = _read_tum(traj)
+    if not len(t_est):
+        raise UserError(f"{traj}: no poses: no relation can be evaluated")
     try:
         rel = dense.read_relations(relations)
     except (ValueError, OSError) as exc:
@@ -142,21 +206,19 @@ def evaluate_command(args: argparse.Namespace) -> dict[str, Any]:
             raise UserError(f"{args.covariances}: {exc}") from None
         if len(t_c) != len(t_est) or not np.allclose(t_c, t_est, atol=1e-6):
             raise UserError(f"{args.covariances}: times differ from the trajectory's")
-    if args.rpe_delta <= 0:
-        raise UserError(f"--rpe-delta must be positive, got {args.rpe_delta}")
+    if not 0 < args.rpe_delta < math.inf:
+        raise UserError(f"--rpe-delta must be a positive number of metres, got {args.rpe_delta}")
+    if args.max_gap is not None and not args.max_gap >= 0:
+        raise UserError(f"--max-gap must be a number of seconds >= 0, got {args.max_gap}")
     try:
         rep = evaluation.evaluate_trajectory(
             t_est, est, t_ref, ref, args.rpe_delta, covs, args.max_gap
         )
     except ValueError as exc:
-        raise UserError(str(exc)) from None
+        raise UserError(f"{traj} against {args.reference}: {exc}") from None
     rep = {"trajectory": str(traj), "reference": str(args.reference), "reference_kind": kind, **rep}
     if map_path is not None and true_map:
-        try:
-            landmarks = json.loads(map_path.read_text())["landmarks"]
-        except (OSError, ValueError, KeyError) as exc:
-            raise UserError(f"{map_path}: not a map.json ({exc})") from None
-        rep["map_error"] = evaluation.map_error(landmarks, true_map)
+        rep["map_error"] = _map_error(map_path, true_map, args.reference)
     lines = [
         f"{rep['poses_compared']} poses against the {kind} "
         f"({rep['poses_outside_reference']} outside its time span)"

@@ -22,7 +22,7 @@ def interpolate_poses(t_ref: ArrayLike, poses: ArrayLike, t: ArrayLike) -> NDArr
     t_ref = np.asarray(t_ref, dtype=float)
     poses = np.asarray(poses, dtype=float)
     t = np.asarray(t, dtype=float)
-    th = np.unwrap(poses[:, 2])
+    th = np.unwrap(wrap_angles(poses[:, 2]))  # wrapped first: no overflow from any finite angle
     out = np.column_stack(
         [
             np.interp(t, t_ref, poses[:, 0]),
@@ -221,15 +221,21 @@ def write_tum(path: str | Path, t: ArrayLike, poses: ArrayLike) -> None:
 TUM_FIELDS = ("timestamp", "tx", "ty", "tz", "qx", "qy", "qz", "qw")
 TUM_MAX_STAMP = 1e10  # s; beyond, not a time (the year 2286 as Unix time)
 TUM_MAX_POSITION = 1e9  # m; beyond, not a position
+TUM_QUATERNION_NORM = (1e-3, 1e3)  # a TUM quaternion is a unit one: outside, not a rotation
 
 
-def read_tum(path: str | Path) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+def read_tum(
+    path: str | Path, ordered: bool = False
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Times and (x, y, yaw) of a TUM trajectory (yaw from the quaternion, normalised).
 
     ValueError naming the line and field for a wrong column count, a non-number, a
-    non-finite or absurd value (stamp beyond 1e10 s, position beyond 1e9 m) or a quaternion of
-    zero norm."""
+    non-finite or absurd value (stamp beyond 1e10 s, position beyond 1e9 m), a quaternion of
+    zero norm or of a norm that no unit quaternion written out has (outside
+    :data:`TUM_QUATERNION_NORM`), and with ``ordered`` a stamp before the one of the pose
+    before it."""
     rows = []
+    last = (-math.inf, 0)  # the previous pose's stamp and line
     with open(path, encoding="utf-8", errors="replace") as fh:
         for lineno, line in enumerate(fh, 1):
             tok = line.split()
@@ -248,8 +254,22 @@ def read_tum(path: str | Path) -> tuple[NDArray[np.float64], NDArray[np.float64]
                 top = TUM_MAX_STAMP if name == "timestamp" else TUM_MAX_POSITION
                 if not math.isfinite(v) or (name[0] != "q" and abs(v) > top):
                     raise ValueError(f"line {lineno}: field {name}: {v!r} is not plausible")
-            if math.hypot(*row[4:]) < 1e-9:
+            big = max(abs(v) for v in row[4:])
+            norm = big * math.hypot(*(v / big for v in row[4:])) if big else 0.0
+            if norm < 1e-9:
                 raise ValueError(f"line {lineno}: quaternion (qx qy qz qw) has zero norm")
+            lo, hi = TUM_QUATERNION_NORM
+            if not lo <= norm <= hi:
+                raise ValueError(
+                    f"line {lineno}: quaternion (qx qy qz qw) has norm {norm:.3g}: not a "
+                    f"rotation (a unit quaternion; {lo:g} to {hi:g} accepted)"
+                )
+            if ordered and row[0] < last[0]:
+                raise ValueError(
+                    f"line {lineno}: field timestamp: {row[0]!r} is before {last[0]!r} "
+                    f"(line {last[1]}): the stamps go backwards"
+                )
+            last = (row[0], lineno)
             rows.append(row)
     data = np.array(rows, dtype=float).reshape(-1, 8)
     q = data[:, 4:] / np.linalg.norm(data[:, 4:], axis=1, keepdims=True)
@@ -275,11 +295,21 @@ def rpe(est: ArrayLike, ref: ArrayLike, delta: float = 1.0) -> dict[str, float]:
     the reference has travelled at least ``delta`` m along its path since i; the error of the
     estimated motion i -> j against the reference motion, inverse(ref_ij) * est_ij. Returns
     RMSE, mean and max of its translation (m) and of its rotation (deg), and the number of
-    pairs (0 when the reference never travels ``delta``: the other values are then NaN)."""
+    pairs (0 when the reference never travels ``delta``: the other values are then NaN).
+    EvaluationError as :func:`ate`, for a ``delta`` that is not a positive number, and for
+    errors that overflow."""
     est, ref = _pair(est, ref)
-    if delta <= 0:
-        raise EvaluationError(f"delta must be positive, got {delta}")
-    dist = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(ref[:, :2], axis=0).T))])
+    if not 0 < delta < math.inf:
+        raise EvaluationError(f"delta must be a positive number, got {delta}")
+    if not len(ref):
+        raise EvaluationError("no poses to compare")
+    with np.errstate(over="ignore", invalid="ignore"):
+        dist = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(ref[:, :2], axis=0).T))])
+    if not np.isfinite(dist[-1]):
+        big = float(np.max(np.abs(ref[:, :2])))
+        raise EvaluationError(
+            f"the reference's path length overflows (positions up to {big:.3g} m)"
+        )
     i = np.arange(len(ref))
     j = np.searchsorted(dist, dist + delta - 1e-12)
     ok = j < len(ref)
@@ -287,23 +317,25 @@ def rpe(est: ArrayLike, ref: ArrayLike, delta: float = 1.0) -> dict[str, float]:
     nan = float("nan")
     if not len(i):
         return {k: nan for k in _RPE_KEYS} | {"pairs": 0, "delta_m": delta}
-    e = _relative_poses(
-        np.vstack([_relative_poses(ref, i, j), _relative_poses(est, i, j)]),
-        np.arange(len(i)),
-        np.arange(len(i), 2 * len(i)),
-    )
-    tr = np.hypot(e[:, 0], e[:, 1])
-    rot = np.degrees(np.abs(e[:, 2]))
-    return {
-        "trans_rmse": float(np.sqrt(np.mean(tr**2))),
-        "trans_mean": float(tr.mean()),
-        "trans_max": float(tr.max()),
-        "rot_rmse_deg": float(np.sqrt(np.mean(rot**2))),
-        "rot_mean_deg": float(rot.mean()),
-        "rot_max_deg": float(rot.max()),
-        "pairs": len(i),
-        "delta_m": delta,
-    }
+    with np.errstate(over="ignore", invalid="ignore"):
+        e = _relative_poses(
+            np.vstack([_relative_poses(ref, i, j), _relative_poses(est, i, j)]),
+            np.arange(len(i)),
+            np.arange(len(i), 2 * len(i)),
+        )
+        tr = np.hypot(e[:, 0], e[:, 1])
+        rot = np.degrees(np.abs(e[:, 2]))
+        out = {
+            "trans_rmse": float(np.sqrt(np.mean(tr**2))),
+            "trans_mean": float(tr.mean()),
+            "trans_max": float(tr.max()),
+            "rot_rmse_deg": float(np.sqrt(np.mean(rot**2))),
+            "rot_mean_deg": float(rot.mean()),
+            "rot_max_deg": float(rot.max()),
+        }
+    if not all(math.isfinite(v) for v in out.values()):
+        raise EvaluationError(f"the RPE overflows (errors up to {float(tr.max()):.3g} m)")
+    return out | {"pairs": len(i), "delta_m": delta}
 
 
 _RPE_KEYS = (
@@ -444,7 +476,28 @@ def write_covariances(path: str | Path, t: ArrayLike, covs: ArrayLike) -> None:
 
 
 def read_covariances(path: str | Path) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    data = np.loadtxt(path, comments="#", ndmin=2)
-    if data.shape[1] != 10:
-        raise ValueError(f"{path}: expected 10 columns (timestamp and a 3x3 covariance)")
+    """Times and (n, 3, 3) covariances of a file of :func:`write_covariances`. ValueError
+    naming the line (``line N: ...``; the caller names the file) for a wrong column count, a
+    non-number or a value that is not finite, and for a file without covariances."""
+    rows = []
+    with open(path, encoding="utf-8", errors="replace") as fh:
+        for lineno, line in enumerate(fh, 1):
+            tok = line.split("#", 1)[0].split()
+            if not tok:
+                continue
+            if len(tok) != 10:
+                raise ValueError(
+                    f"line {lineno}: expected 10 columns (timestamp and a 3x3 covariance), "
+                    f"got {len(tok)}"
+                )
+            try:
+                row = [float(x) for x in tok]
+            except ValueError:
+                raise ValueError(f"line {lineno}: not a number in {line.strip()[:60]!r}") from None
+            if not all(math.isfinite(v) for v in row):
+                raise ValueError(f"line {lineno}: a value is not finite")
+            rows.append(row)
+    if not rows:
+        raise ValueError("no covariances (timestamp and a 3x3 covariance per line)")
+    data = np.array(rows, dtype=float)
     return data[:, 0], data[:, 1:].reshape(-1, 3, 3)
