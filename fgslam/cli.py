@@ -363,8 +363,9 @@ def _input_notes(reader, tap: _Tap, results: list) -> tuple[dict, list[str]]:
     if problems is not None and not isinstance(problems, list):
         extra["reader"] = summary  # a foreign reader's own account
         notes += [f"warning: {w}" for w in summary.get("warnings", [])]
-    elif "timestamps" in summary:  # a native log's clock check (docs/readers.md)
-        extra["reader"] = {"timestamps": summary["timestamps"]}
+    elif "timestamps" in summary or "plausibility" in summary:  # a native log's checks
+        keys = ("timestamps", "plausibility", "warnings")  # (docs/readers.md)
+        extra["reader"] = {k: summary[k] for k in keys if k in summary}
         notes += [f"warning: {w}" for w in _reader_warnings(summary)]
     return extra, notes
 
@@ -729,9 +730,11 @@ def _add_reader_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument(
         "--strict",
         action="store_true",
-        help="refuse a log with implausible odometry (a jump faster than 3 m/s or 6 rad/s) "
-        "or without a usable clock; by default such odometry records are skipped and "
-        "counted (the jump dropped) and such a log is read in record order, with a warning",
+        help="refuse a log with implausible records (laser ranges out of range, scans with "
+        "no valid beam, odometry faster than 3 m/s or 6 rad/s, absurd truth, stamps out of "
+        "order: docs/readers.md, Plausibility) or without a usable clock; by default such "
+        "records are counted and warned about (out-of-range beams read as no return, "
+        "implausible odometry and truth skipped) and such a log is read in record order",
     )
     g.add_argument("--scan-topic", help="ROS: sensor_msgs/LaserScan topic (default: the only)")
     g.add_argument("--odom-topic", help="ROS: nav_msgs/Odometry topic (default: the only)")

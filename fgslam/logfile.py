@@ -431,6 +431,13 @@ class LogReader:
     at ``k * INDEX_PERIOD`` and spreads the other records between scans. What was done is in
     ``clock_record`` and ``summary()["timestamps"]``. The check reads the file once more
     (it needs a regular file).
+
+    ``checks`` applies the plausibility rules to the events (laser ranges, scans without a
+    valid beam, odometry beyond ``limits``, implausible truth, stamps out of order:
+    :mod:`fgslam.readers.plausibility`), what they find in ``findings`` and
+    ``summary()["plausibility"]``, one warning per kind in ``summary()["warnings"]``;
+    ``strict`` makes the first finding an error naming the line (and a record with a
+    sporadic bad stamp, otherwise dropped, too). ``LogReader(path)`` alone checks nothing.
     """
 
     def __init__(
@@ -439,6 +446,9 @@ class LogReader:
         tolerant: bool = False,
         timestamps: str | None = None,
         backwards_tolerance: float = BACKWARDS_TOLERANCE,
+        checks: bool = False,
+        strict: bool = False,
+        limits: Any = None,
     ) -> None:
         self.path = path
         self.name = str(path)
@@ -453,6 +463,8 @@ class LogReader:
         self._index: tuple[np.ndarray, np.ndarray] | None = None  # lines, stamps (index)
         self._bad_lines: set[int] = set()  # records with sporadic bad stamps
         self._carry = (0, 0)  # ticks of dropped odometry records, for the next one
+        self._lineno = 0  # the line of the record last read
+        self.findings: Any = None  # the plausibility findings (checks)
         try:
             self._file, self._gzipped = _open_binary(path, "r")
         except OSError as exc:
@@ -467,6 +479,13 @@ class LogReader:
             self.close()
             raise
         self._events = self._iter_events()
+        if checks:
+            from fgslam.readers.plausibility import Findings, Rules, check_events
+
+            rules = Rules.of(self.config, limits, clock=self.clock != "index")
+            order = {"order": "passed on as stamped (the pipeline puts them back in order)"}
+            self.findings = Findings(self.name, strict, self._skip, rules, order)
+            self._events = check_events(self._events, rules, self.findings, lambda: self._lineno)
 
     # -- lines
 
@@ -582,6 +601,11 @@ class LogReader:
         }
         if self.clock_record is not None:
             out["timestamps"] = self.clock_record
+        if self.findings is not None:
+            from fgslam.readers.common import clock_warnings
+
+            out["plausibility"] = self.findings.summary()
+            out["warnings"] = clock_warnings(self.clock_record) + self.findings.warnings()
         return out
 
     # -- clock
@@ -685,6 +709,9 @@ class LogReader:
                 if i < len(lines) and lines[i] == lineno:
                     event = dataclasses.replace(event, t=float(stamps[i]))
             elif lineno in self._bad_lines:  # a sporadic junk or far-backward stamp
+                if self.findings is not None:
+                    what = f"{stream} record stamped {event.t:.6g} s (junk or far back)"
+                    self.findings.note("order", what, line=lineno)
                 self.backwards[stream] += 1
                 if isinstance(event, OdometryEvent):
                     r, left = self._carry
@@ -703,19 +730,25 @@ class LogReader:
             message = f"{self.name}:{lineno}: {bad.message}"
             if not self.tolerant:
                 raise LogFormatError(message) from None
-            self.skipped += 1
-            self.skipped_by_reason[bad.reason] = self.skipped_by_reason.get(bad.reason, 0) + 1
-            if len(self.problems) < MAX_PROBLEMS:
-                self.problems.append(message)
+            self._skip(bad.reason, message)
             return None
+
+    def _skip(self, reason: str, message: str) -> None:
+        """Count a record not turned into an event (or dropped by the plausibility rules)."""
+        self.skipped += 1
+        self.skipped_by_reason[reason] = self.skipped_by_reason.get(reason, 0) + 1
+        if len(self.problems) < MAX_PROBLEMS:
+            self.problems.append(message)
 
     def _iter_events(self) -> Iterator[Event]:
         try:
             if self._pending is not None:
+                self._lineno = self._pending[0]
                 event = self._record(*self._pending)
                 if event is not None:
                     yield event
             for lineno, raw in self._lines:
+                self._lineno = lineno
                 event = self._record(lineno, raw)
                 if event is not None:
                     yield event

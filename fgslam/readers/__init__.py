@@ -51,14 +51,16 @@ def sniff_format(path: StrPath) -> str:
 
 def open_log(path: StrPath, format: str | None = None, **options: Any):
     """Open a log of any supported sensor-log format; ``options`` go to the reader
-    (``tolerant``, ``strict``, ``timestamps`` and ``backwards_tolerance`` for all;
-    ``timestamps``: fgslam ``auto``/``log``/``index``, CARMEN ``auto``/``ipc``/``logger``/
-    ``index``, ROS ``auto``/``header``/``bag``; CARMEN: ``mode``, ``no_return``, ``limits``;
-    ROS: ``scan_topic``, ``odom_topic``, ``range_topics``, ``laser_mount``, ``range_mounts``,
-    ``limits``). Every format's clock is checked (docs/readers.md, "Timestamps"): a CARMEN or
-    native log without a usable clock is read in record order (``index``) with a warning,
-    refused with ``strict``; ``strict`` also refuses implausible odometry, which is otherwise
-    skipped and counted."""
+    (``tolerant``, ``strict``, ``timestamps``, ``limits`` and ``backwards_tolerance`` for
+    all; ``timestamps``: fgslam ``auto``/``log``/``index``, CARMEN ``auto``/``ipc``/``logger``/
+    ``index``, ROS ``auto``/``header``/``bag``; CARMEN: ``mode``, ``no_return``; ROS:
+    ``scan_topic``, ``odom_topic``, ``range_topics``, ``laser_mount``, ``range_mounts``).
+    Every format's clock is checked (docs/readers.md, "Timestamps"): a CARMEN or native log
+    without a usable clock is read in record order (``index``) with a warning, refused with
+    ``strict``. The events of native and CARMEN logs go through the same plausibility rules
+    (:mod:`fgslam.readers.plausibility`: laser ranges out of range, scans without a valid
+    beam, implausible odometry, implausible truth, stamps out of order), each kind counted
+    and warned once, an error with ``strict``."""
     fmt = format or sniff_format(path)
     if fmt == "fgslam":
         return _open_native(path, options)
@@ -102,9 +104,10 @@ def open_log(path: StrPath, format: str | None = None, **options: Any):
 
 
 def _open_native(path: StrPath, options: dict[str, Any]):
-    """A native log (:class:`fgslam.logfile.LogReader`) with its clock checked; without a
-    usable clock (``timestamps`` auto) it is read in record order (``index``) unless
-    ``strict``, the reason in ``clock_record["fallback"]`` and ``["clock"]``."""
+    """A native log (:class:`fgslam.logfile.LogReader`) with its clock checked and its events
+    through the plausibility rules; without a usable clock (``timestamps`` auto) it is read
+    in record order (``index``) unless ``strict``, the reason in ``clock_record["fallback"]``
+    and ``["clock"]``."""
     from fgslam.logfile import LogFormatError, LogReader
     from fgslam.readers.common import NoUsableClock
 
@@ -112,6 +115,9 @@ def _open_native(path: StrPath, options: dict[str, Any]):
     kw = {
         "tolerant": bool(options.get("tolerant", False)),
         "backwards_tolerance": options.get("backwards_tolerance", BACKWARDS_TOLERANCE),
+        "checks": True,  # the plausibility rules (fgslam.readers.plausibility)
+        "strict": bool(options.get("strict", False)),
+        "limits": options.get("limits"),
     }
     try:
         return LogReader(path, timestamps=timestamps, **kw)

@@ -27,7 +27,11 @@ Two kinds of log (``mode``, detected by default):
 Odometry increments become encoder ticks of the virtual differential drive of
 :func:`fgslam.readers.common.derived_config` (:class:`~fgslam.readers.common.VirtualDrive`).
 Ranges at or beyond ``no_return`` (m, the LMS reports no return as 81.91), at or beyond a
-``ROBOTLASER1``'s maximum range, not numbers, infinite or <= 0 are NaN.
+``ROBOTLASER1``'s maximum range, ``inf`` or ``nan`` are no return (NaN). Negative, zero or
+``-inf`` ranges are no code of the format: they are left to the plausibility rules that
+every format shares (:mod:`fgslam.readers.plausibility`: read as no return, counted, warned,
+refused with ``strict``), as are implausible odometry (judged here on the poses) and records
+stamped out of order (dropped or carried here, noted there).
 
 Laser geometry: a ``FLASER`` line's n beams lie evenly over 180 deg from -90 deg; a
 ``ROBOTLASER1``'s at ``start_angle + k resolution`` (CARMEN's rule; spread over ``fov``
@@ -403,8 +407,14 @@ class CarmenLog(Source):
 
     # ------------------------------------------------------------------ events
 
-    def __iter__(self) -> Iterator[Event]:
+    def events(self) -> Iterator[Event]:
+        """The log's events (unchecked: iterating the log applies the plausibility rules,
+        :class:`~fgslam.readers.common.Source`)."""
         self._new_pass()
+        if self.problems.findings is None:  # read directly: the reader's own rules still note
+            from fgslam.readers.plausibility import Findings
+
+            self.problems.findings = Findings(self.name, self.strict, self.problems.skip)
         drive = VirtualDrive(self.config)
         pr = self.problems
         notes = self._odo_notes
@@ -421,7 +431,7 @@ class CarmenLog(Source):
 
         base = (0.0, 0.0, 0.0)  # corrected: P_{k-1}; raw: the last scan odometry field
         jumps = OdometryJumps(limits, clock=self.clock != "index")  # raw: the ODOM lines
-        pending: list[tuple[float, np.ndarray]] = []  # corrected: ODOMs relative to P_{k-1}
+        pending: list[tuple[float, np.ndarray, int]] = []  # corrected: ODOMs rel. to P_{k-1}
         carried = np.zeros(3)  # motion not yet delivered (an increment)
         have_odom = False
         n_scans = 0
@@ -443,11 +453,11 @@ class CarmenLog(Source):
                 t = math.nan  # a sporadic junk stamp: handled as going backwards
             if tag == "ODOM":
                 if self.mode == "corrected":
-                    prev_t, prev = pending[-1] if pending else (last_scan_t, np.zeros(3))
+                    prev_t, prev, _ = pending[-1] if pending else (last_scan_t, np.zeros(3), 0)
                     rel = relative(base, rec["pose"])
                     if self._implausible(lineno, relative(prev, rel), t - prev_t):
                         continue
-                    pending.append((t, rel))
+                    pending.append((t, rel, lineno))
                     continue
                 if not have_odom:
                     jumps.step(rec["pose"], t)
@@ -461,7 +471,7 @@ class CarmenLog(Source):
                     continue
                 carried = compose(carried, inc)
                 if not (t >= last_odo_t and t >= last_scan_t):
-                    pr.backwards["ODOM"] += 1
+                    self._backward("ODOM", lineno, t, max(last_odo_t, last_scan_t))
                     continue
                 last_odo_t, in_hole = t, end_hole(t)
                 yield from hold.odometry(t, carried)
@@ -473,7 +483,7 @@ class CarmenLog(Source):
                     if t >= last_odo_t:
                         yield from hold.event(TruthPose(t, *rec["pose"]), needs_odometry=False)
                     else:
-                        pr.backwards["TRUEPOS"] += 1
+                        self._backward("TRUEPOS", lineno, t, last_odo_t)
                 continue
             # a scan
             ranges = np.asarray(rec["ranges"], dtype=float)
@@ -486,7 +496,7 @@ class CarmenLog(Source):
                 # the ODOM lines since scan k-1, relative to P_{k-1}: one sample each when
                 # stamped in order up to this scan, else carried into the next sample
                 emitted = np.zeros(3)
-                for ti, rel in pending if not backwards else ():
+                for ti, rel, ln in pending if not backwards else ():
                     if last_odo_t <= ti <= t:
                         yield from drive.ticks(
                             ti,
@@ -496,8 +506,11 @@ class CarmenLog(Source):
                         )
                         carried, emitted, last_odo_t = np.zeros(3), rel, ti
                         in_hole = end_hole(ti)
+                    elif not ti >= last_odo_t:
+                        self._backward("ODOM", ln, ti, last_odo_t)
                     else:
-                        pr.backwards["ODOM" if not ti >= last_odo_t else "ODOM after its scan"] += 1
+                        after = f"ODOM stamped {ti:.6f} s, after the scan that follows it"
+                        self._backward("ODOM after its scan", ln, ti, t, after)
                 final = pending[-1][1] if pending else emitted
                 carried = compose(carried, relative(emitted, final))
                 base, pending = rec["pose"], []
@@ -509,7 +522,7 @@ class CarmenLog(Source):
                     carried = compose(carried, inc)
                 base = rec["odom"]
             if backwards:
-                pr.backwards[tag] += 1
+                self._backward(tag, lineno, t, max(last_scan_t, last_odo_t))
                 continue  # the scan is dropped; its motion stays in `carried`
             if self.mode == "corrected" and np.any(carried != 0):
                 yield from drive.ticks(t, carried, after=last_scan_t, hole=limits.hole)
@@ -529,14 +542,13 @@ class CarmenLog(Source):
                 yield TruthPose(t, *rec["pose"])
             last_scan_t = t
             ranges = ranges.copy()
-            with np.errstate(invalid="ignore"):
-                bad = (ranges >= min(self.no_return, rec["max_range"])) | ~(ranges > 0)
-            ranges[bad] = np.nan
+            with np.errstate(invalid="ignore"):  # no return; other ranges out of range are
+                ranges[ranges >= min(self.no_return, rec["max_range"])] = np.nan  # plausibility's
             n_scans += 1
             yield from hold.event(LaserScan(t, ranges, bearings))
         yield from hold.flush()
         self.problems.notes["warnings"] = input_warnings(
-            n_scans, drive.travel, notes, self.meta.get("timestamps")
+            n_scans, drive.travel, notes, self.meta.get("timestamps"), implausible=False
         )
 
     def scan_bearings(self, rec: dict) -> np.ndarray | None:
@@ -563,13 +575,21 @@ class CarmenLog(Source):
         return True
 
     def _skip_implausible(self, lineno: int, why: str) -> None:
-        """An implausible odometry record: counted and skipped, or (strict) a
-        :class:`ReaderError` naming the line."""
-        msg = f"{self.name}:{lineno}: implausible odometry: {why}"
-        if self.strict:
-            raise ReaderError(msg + " (refused with --strict; without it, skipped and counted)")
+        """An implausible odometry record: skipped and counted, or (strict) a
+        :class:`ReaderError` naming the line (the plausibility findings:
+        :mod:`fgslam.readers.plausibility`)."""
+        self.problems.findings.note("odometry", why, line=lineno, skipped=True)
         self._odo_notes["implausible"] += 1
-        self.problems.skip("implausible odometry", msg)
+
+    def _backward(
+        self, stream: str, lineno: int, t: float, last: float, detail: str | None = None
+    ) -> None:
+        """A record stamped before the last event delivered (at ``last`` s), or with a
+        sporadic junk stamp (``t`` NaN): dropped or its motion carried, counted, noted as a
+        stamp out of order (:meth:`~fgslam.readers.common.Problems.backward`)."""
+        if detail is None and math.isfinite(t):
+            detail = f"{stream} stamped {t:.6f} s, before the last event delivered ({last:.6f} s)"
+        self.problems.backward(stream, detail or f"{stream} with a junk stamp", lineno)
 
 
 def odometry_check(path: StrPath) -> dict[str, np.ndarray]:

@@ -70,6 +70,8 @@ class Problems:
         self.backwards: Counter = Counter()
         self.problems: list[str] = []
         self.notes: dict[str, Any] = {}  # e.g. "timestamps", "odometry" (docs/readers.md)
+        # the plausibility findings of the current pass (fgslam.readers.plausibility.Findings)
+        self.findings: Any = None
 
     @property
     def skipped(self) -> int:
@@ -87,14 +89,27 @@ class Problems:
         if message and len(self.problems) < MAX_PROBLEMS:
             self.problems.append(message)
 
+    def backward(self, stream: str, detail: str, line: int | None = None) -> None:
+        """A record of ``stream`` stamped before the last one delivered (``detail`` names it),
+        dropped or its motion carried by the reader: counted in ``backwards`` and noted as a
+        stamp out of order (:mod:`fgslam.readers.plausibility`; with ``--strict`` an
+        error)."""
+        if self.findings is not None:
+            self.findings.note("order", detail, line=line)
+        self.backwards[stream] += 1
+
     def summary(self) -> dict[str, Any]:
-        return {
+        out = {
             "skipped": self.skipped,
             "skipped_by_reason": dict(self.skipped_by_reason),
             "timestamps_backwards": dict(self.backwards),
             "problems": list(self.problems),
             **self.notes,
         }
+        if self.findings is not None:  # one warning per kind of implausible record
+            out["plausibility"] = self.findings.summary()
+            out["warnings"] = list(self.notes.get("warnings", [])) + self.findings.warnings()
+        return out
 
 
 class TimeCheck:
@@ -489,11 +504,13 @@ def input_warnings(
     travel: float,
     odometry: dict[str, Any] | None = None,
     clock: dict[str, Any] | None = None,
+    implausible: bool = True,
 ) -> list[str]:
     """One-line warnings about an input that gives almost nothing to process, no motion,
-    mostly holes, implausible odometry skipped (``odometry``: the reader's odometry notes), or
-    no usable clock (``clock``: the record of :func:`fgslam.readers.sanity.choose_clock`),
-    for the console and ``report.json``."""
+    mostly holes, implausible odometry skipped (``odometry``: the reader's odometry notes;
+    ``implausible`` False: the reader notes those in the plausibility findings, which word
+    the warning), or no usable clock (``clock``: the record of
+    :func:`fgslam.readers.sanity.choose_clock`), for the console and ``report.json``."""
     out = clock_warnings(clock)
     if scans < MIN_SCANS:
         out.append(f"only {scans} laser scans: almost nothing to process")
@@ -504,7 +521,7 @@ def input_warnings(
             f"{odometry['holes']} odometry holes ({odometry.get('hole_seconds', 0):g} s without "
             "odometry while scans came): their motion is uncertain"
         )
-    if odometry and odometry.get("implausible"):
+    if implausible and odometry and odometry.get("implausible"):
         rebased = odometry.get("rebased", 0)
         out.append(
             f"{odometry['implausible']} implausible odometry records skipped (jumps, dropped: "
@@ -519,12 +536,18 @@ class Source:
     """A readable log: ``config``, ``world``, ``meta``, ``reference_kind`` (``"ground truth"``,
     ``"reference"`` or None: what the TruthPose events are), and events by iteration;
     ``problems`` counts what was skipped. The attributes ``skipped`` and ``skipped_by_reason``
-    mirror :class:`fgslam.logfile.LogReader`."""
+    mirror :class:`fgslam.logfile.LogReader`.
+
+    A reader implements :meth:`events`; iterating the source passes them through the
+    plausibility rules (:func:`fgslam.readers.plausibility.check_events`, with the reader's
+    configuration, ``limits`` and ``clock``), the findings of the pass in
+    ``problems.findings`` (with ``strict`` the first is an error)."""
 
     format = "?"
     config: RobotConfig
     world: str = ""
     reference_kind: str | None = None
+    strict = False  # refuse what is otherwise read with a warning (--strict)
 
     def __init__(self, path: StrPath) -> None:
         self.path = path
@@ -541,6 +564,17 @@ class Source:
         return dict(self.problems.skipped_by_reason)
 
     def __iter__(self) -> Iterator[Event]:
+        from fgslam.readers.plausibility import Findings, Rules, check_events
+
+        rules = Rules.of(
+            self.config, getattr(self, "limits", None), getattr(self, "clock", None) != "index"
+        )
+        findings = Findings(self.name, self.strict, self.problems.skip, rules)
+        self.problems.findings = findings
+        return check_events(self.events(), rules, findings)
+
+    def events(self) -> Iterator[Event]:
+        """The reader's events of one pass, unchecked."""
         raise NotImplementedError
 
     def close(self) -> None:
