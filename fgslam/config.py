@@ -490,6 +490,10 @@ _MAXIMUM = {
     "sonar.plane_incidence_deg": 90.0,
 }
 _MAX_ANY = 1e9
+# rad: the finest beam step a laser may have (0.2 arc-seconds; 360 deg over the most beams,
+# 100000, is 6.3e-5 rad): below it the thresholds derived from the step overflow or divide
+# by zero (frontend_thresholds, match_params)
+MIN_BEAM_STEP = 1e-6
 
 
 def _type_name(tp: Any) -> str:
@@ -584,6 +588,8 @@ def _read_toml(text: str, src: str) -> dict[str, Any]:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{src}: not valid TOML: {exc}") from None
+    except RecursionError:  # arrays or inline tables nested deeper than tomllib recurses
+        raise ConfigError(f"{src}: not valid TOML: nested too deeply") from None
 
 
 def from_dict(data: dict[str, Any], source: str = "<dict>") -> RobotConfig:
@@ -616,6 +622,12 @@ def _check_consistency(cfg: RobotConfig, src: str) -> None:
         raise ConfigError(
             f"{src}: key 'laser.calibration': estimating the range errors needs a positive "
             "laser.systematic_offset (and systematic_per_metre for 'range'): their prior sigmas"
+        )
+    step = math.radians(las.fov_deg) / max(las.n_beams - 1, 1)
+    if not step >= MIN_BEAM_STEP:
+        raise ConfigError(
+            f"{src}: key 'laser.fov_deg': {las.fov_deg:g} deg over {las.n_beams} beams is a "
+            f"beam step of {step:.3g} rad, below {MIN_BEAM_STEP:g} rad (no scanner is that fine)"
         )
     if cfg.laser.delay_max < cfg.laser.delay_min:
         raise ConfigError(f"{src}: key 'laser.delay_max': expected >= laser.delay_min")

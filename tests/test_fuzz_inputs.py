@@ -1,0 +1,161 @@
+"""A robot configuration file is read or refused with one ConfigError, never another
+exception (issue "Bad input never escapes", item 5: what ``experiments/fuzz_inputs.py``
+found on the configuration path), and a configuration that loads gives every parameter a
+run derives from it.
+
+Regression tests of the campaign's escapes, then a hypothesis fuzz test of ``load_config``
+on mutated TOML text: the default file with values replaced by hostile ones, keys and
+sections dropped, sonar arrays removed or emptied, or a small override file."""
+
+from __future__ import annotations
+
+import re
+import warnings
+
+import pytest
+import tomli_w
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from fgslam import config as c
+from fgslam.config import ConfigError, load_config
+
+
+def _derived(cfg: c.RobotConfig) -> None:
+    """What ``fgslam config`` prints and what a run derives from the configuration."""
+    tomli_w.dumps(cfg.to_dict())
+    c.frontend_thresholds(cfg)
+    c.match_params(cfg)
+    c.keyframe_params(cfg)
+    c.loop_params(cfg)
+    c.map_params(cfg)
+    cfg.odometry.params()
+    for section in (cfg.odometry, cfg.laser, cfg.sonar):
+        section.calibration_prior()
+    assert cfg.laser.bearings.size == cfg.laser.n_beams
+    assert cfg.laser.scan_period > 0
+
+
+def _outcome(tmp_path, text: str) -> str:
+    """'loaded' or 'refused' (a ConfigError naming the file); any other exception and any
+    warning fails the test."""
+    p = tmp_path / "robot.toml"
+    p.write_text(text, encoding="utf-8", errors="surrogateescape")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        try:
+            cfg = load_config(p)
+        except ConfigError as exc:
+            msg = str(exc)
+            assert msg.startswith(str(p)) and "\n" not in msg, msg
+            return "refused"
+        _derived(cfg)
+    return "loaded"
+
+
+# -- the campaign's escapes (each failed on a08788f)
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "[laser]\nmount = " + "[" * 5000 + "]" * 5000 + "\n",  # arrays nested too deeply
+        "[frontend]\nspread = " + "{ a = " * 2000 + "1" + " }" * 2000 + "\n",  # inline tables
+    ],
+    ids=["arrays", "inline-tables"],
+)
+def test_nesting_beyond_the_recursion_limit_is_refused(tmp_path, text):
+    p = tmp_path / "robot.toml"
+    p.write_text(text)
+    with pytest.raises(ConfigError, match="nested too deeply"):
+        load_config(p)
+
+
+@pytest.mark.parametrize(
+    "laser",
+    [
+        "fov_deg = 5e-324",  # the beam step underflows to 0: ZeroDivisionError
+        "fov_deg = 1e-305\nn_beams = 1000",  # 0.07 m / step overflows: OverflowError
+        "fov_deg = 1e-9\nn_beams = 100000",
+    ],
+)
+def test_a_beam_step_no_scanner_has_is_refused(tmp_path, laser):
+    p = tmp_path / "robot.toml"
+    p.write_text(f"[laser]\n{laser}\n")
+    with pytest.raises(ConfigError, match=r"laser.fov_deg.*beam step"):
+        load_config(p)
+
+
+def test_the_finest_plausible_scanner_still_loads(tmp_path):
+    p = tmp_path / "robot.toml"
+    p.write_text("[laser]\nfov_deg = 360.0\nn_beams = 100000\n")
+    cfg = load_config(p)
+    _derived(cfg)
+    assert c.frontend_thresholds(cfg)["min_points"] > 0
+
+
+# -- fuzzing
+
+VALUES = (
+    "nan", "+nan", "-nan", "inf", "-inf", "1e400", "-1e400", "5e-324", "1e-320", "1e-300",
+    "0", "0.0", "-0.0", "-1", "1", "2", "1e308", "-1e308", "1e9", "1e10", "100000", "100001",
+    "360.0000001", "9223372036854775807", "-9223372036854775808", "0x7FFFFFFF", "true",
+    '"x"', '""', "[]", "[1, 2]", "[nan, nan, nan]", "[0.0, 0.0, 0.0]", "[1e400, 1, 1]",
+    "{}", "{ x = 1 }", "{ x = nan, y = 0, yaw_deg = 0 }", "{ x = 0, y = 0 }", "1979-05-27",
+    "[" * 3000 + "]" * 3000,
+)  # fmt: skip
+_KEY_LINE = re.compile(r"^([A-Za-z_]\w*)(\s*=\s*)(.*)$")
+DEFAULT_LINES = c.default_config_text().splitlines()
+KEYED = [i for i, ln in enumerate(DEFAULT_LINES) if _KEY_LINE.match(ln)]
+SCHEMA: list[tuple[str, str]] = []
+_section = ""
+for _ln in DEFAULT_LINES:
+    if _ln.startswith("["):
+        _section = _ln.strip("[] ")
+    elif m := _KEY_LINE.match(_ln):
+        SCHEMA.append((_section, m.group(1)))
+
+
+@st.composite
+def mutated_default(draw) -> str:
+    """The default file with one to three changes."""
+    lines = list(DEFAULT_LINES)
+    for _ in range(draw(st.integers(1, 3))):
+        op = draw(st.sampled_from(["value", "value", "value", "drop", "arrays", "bytes"]))
+        keyed = [i for i, ln in enumerate(lines) if _KEY_LINE.match(ln)]
+        if op == "value" and keyed:
+            k = draw(st.sampled_from(keyed))
+            m = _KEY_LINE.match(lines[k])
+            assert m is not None
+            new = draw(st.one_of(st.sampled_from(VALUES), st.floats().map(repr)))
+            lines[k] = f"{m.group(1)}{m.group(2)}{new}"
+        elif op == "drop" and lines:
+            del lines[draw(st.integers(0, len(lines) - 1))]
+        elif op == "arrays":
+            if draw(st.booleans()):
+                lines = [ln for ln in lines if ln.strip() != "[[sonar.arrays]]"]
+            else:
+                k = lines.index("[sonar]") + 1 if "[sonar]" in lines else 0
+                lines.insert(k, "arrays = " + draw(st.sampled_from(["[]", "[{}]", "1"])))
+        else:
+            k = draw(st.integers(0, max(0, len(lines) - 1)))
+            lines.insert(k, draw(st.text(max_size=30)))
+    return "\n".join(lines) + "\n"
+
+
+@st.composite
+def override_file(draw) -> str:
+    """A small user file: one to four keys of the default file with hostile values."""
+    picks = draw(st.lists(st.sampled_from(SCHEMA), min_size=1, max_size=4, unique=True))
+    parts = []
+    for section, key in sorted(picks):
+        value = draw(st.one_of(st.sampled_from(VALUES), st.floats().map(repr), st.integers()))
+        header = "[[sonar.arrays]]" if section == "sonar.arrays" else f"[{section}]"
+        parts += [header, f"{key} = {value}"]
+    return "\n".join(parts) + "\n"
+
+
+@given(st.one_of(mutated_default(), override_file()))
+@settings(max_examples=300, deadline=None)
+def test_fuzz_config_toml(tmp_path_factory, text):
+    assert _outcome(tmp_path_factory.mktemp("cfg"), text) in ("loaded", "refused")
