@@ -224,3 +224,47 @@ def test_resolution_is_a_configuration_key(tmp_path):
     np.testing.assert_allclose(
         a.covariance_start - b.covariance_start, resolution_floor(p), atol=1e-15
     )
+
+
+def saturated(text: str, rng, share: float = 0.05, code: float = 51.15, pad: float = 50.0):
+    """A CARMEN log whose laser reports no return as ``code`` (a share of the readings) and
+    whose last beam is a padding field reading ``pad`` in every scan."""
+    out = []
+    for line in text.splitlines():
+        f = line.split()
+        if f and f[0] == "FLASER":
+            n = int(f[1])
+            r = [float(v) for v in f[2 : 2 + n]]
+            for i in range(n):
+                if rng.random() < share or r[i] > 80:
+                    r[i] = code
+            r[-1] = pad
+            f[2 : 2 + n] = [repr(v) for v in r]
+            line = " ".join(f)
+        out.append(line)
+    return "\n".join(out) + "\n"
+
+
+def test_carmen_laser_with_its_own_no_return_value_and_a_padding_beam(tmp_path):
+    """A laser that reports no return as 51.15 m (acapulco-corrected: 7.9 % of its readings)
+    and fills its 181st beam with 50.0: both read as no return (NaN), the value found from
+    the first scans and recorded, the configured laser's range lowered to it; the room's
+    own readings (below 10 m) stay. The same log with the LMS's 81.91 is unchanged."""
+    rng = np.random.default_rng(5)
+    base = carmen_text(corrected=True, n=40, beams=181)
+    f = tmp_path / "s.log"
+    f.write_text(saturated(base, rng))
+    log = open_log(f)
+    scans = [e for e in log if isinstance(e, LaserScan)]
+    r = np.vstack([s.ranges for s in scans])
+    assert np.isnan(r[:, -1]).all()
+    assert not (r > 50).any()  # nothing left at the no-return code
+    assert 0.03 < np.isnan(r[:, :-1]).mean() < 0.08
+    assert 50.0 < log.meta["no_return_m"] < 51.15 and log.meta["dead_beams"] == [180]
+    assert log.config.laser.max_range == pytest.approx(log.meta["no_return_m"], abs=1e-3)
+    plain = tmp_path / "p.log"
+    plain.write_text(base)
+    log = open_log(plain)
+    r = np.vstack([s.ranges for s in log if isinstance(s, LaserScan)])
+    assert "dead_beams" not in log.meta and log.meta.get("no_return_m", 80.0) == 80.0
+    assert np.isnan(r[:, 5]).all() and np.isfinite(r[:, :5]).all()

@@ -26,8 +26,11 @@ Two kinds of log (``mode``, detected by default):
 
 Odometry increments become encoder ticks of the virtual differential drive of
 :func:`fgslam.readers.common.derived_config` (:class:`~fgslam.readers.common.VirtualDrive`).
-Ranges at or beyond ``no_return`` (m, the LMS reports no return as 81.91), at or beyond a
-``ROBOTLASER1``'s maximum range, ``inf`` or ``nan`` are no return (NaN). Negative, zero or
+Ranges at or beyond ``no_return`` (m, the LMS reports no return as 81.91; a laser whose
+readings pile up just below a lower largest value, e.g. 32.767 or 51.15 m, reports it there:
+probed from the first scans, ``meta["no_return_m"]``), at or beyond a ``ROBOTLASER1``'s
+maximum range, ``inf`` or ``nan`` are no return (NaN), as are the readings of a beam that
+reads one value in every probed scan (a padding field, ``meta["dead_beams"]``). Negative, zero or
 ``-inf`` ranges are no code of the format: they are left to the plausibility rules that
 every format shares (:mod:`fgslam.readers.plausibility`: read as no return, counted, warned,
 refused with ``strict``), as are implausible odometry (judged here on the poses) and records
@@ -54,6 +57,7 @@ are held and spread by :class:`~fgslam.readers.common.StaleOdometryHold` (``stal
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Iterator
 from typing import TYPE_CHECKING
@@ -90,6 +94,14 @@ from fgslam.readers.sanity import (
 MODES = ("auto", "corrected", "raw")
 MAX_COORD = 1e7  # m (and rad): a pose field beyond is not a pose
 NO_RETURN = 80.0
+# the no-return probe (CarmenLog._probe_no_return): scans read, fewest to decide on, the band
+# below the log's largest reading taken as the saturation value, and the share of readings
+# in it that makes it one (real returns within 1 % of the largest are far rarer)
+PROBE_SCANS = 300
+MIN_PROBE_SCANS = 20
+SATURATION_BAND = 0.01
+SATURATION_SHARE = 0.002
+DEAD_SHARE = 0.02  # more constant beams than this share: the robot stood, no beam is dead
 LASER_TAGS = ("FLASER", "ROBOTLASER1")
 USED_TAGS = ("FLASER", "ROBOTLASER1", "ODOM", "TRUEPOS", "PARAM")
 
@@ -264,6 +276,7 @@ class CarmenLog(Source):
         self.reference = reference
         self.limits = limits or OdometryLimits()
         self._probe(mode)
+        self._probe_no_return()
         self._clock_pass(timestamps, backwards_tolerance)
 
     def _clock_pass(self, requested: str, tolerance: float) -> None:
@@ -350,6 +363,40 @@ class CarmenLog(Source):
                 yield lineno, {"tag": "bad", "reason": f"bad {f[0]} record", "message": msg}
                 continue
             yield lineno, rec
+
+    def _probe_no_return(self, scans: int = PROBE_SCANS) -> None:
+        """The laser's own "no return" value and dead beams, from the first ``scans`` laser
+        records. A laser reports no return as its saturation value (the LMS 81.91 m, others
+        32.767 m or ~51 m): readings within ``SATURATION_BAND`` of the largest reading of the
+        log, seen in more than ``SATURATION_SHARE`` of the readings, are that value, so
+        ``no_return`` (and the configured laser's maximum range) is lowered to the band's
+        bottom. A beam that reads one value in every probed scan (a padding field) measures
+        nothing: its readings are NaN. Both are recorded in ``meta``."""
+        rows: list[np.ndarray] = []
+        for _, rec in self._records(strict=False):
+            if rec["tag"] in LASER_TAGS and len(rec["ranges"]) == self.n_beams:
+                rows.append(np.asarray(rec["ranges"], dtype=float))
+                if len(rows) >= scans:
+                    break
+        self.dead_beams = np.zeros(self.n_beams, dtype=bool)
+        if len(rows) < MIN_PROBE_SCANS:
+            return
+        r = np.vstack(rows)
+        ok = np.isfinite(r) & (r > 0)
+        if not ok.any():
+            return
+        top = float(r[ok].max())
+        band = top * (1.0 - SATURATION_BAND)
+        if top < self.no_return and np.mean(r[ok] >= band) > SATURATION_SHARE:
+            self.no_return = band
+            laser = dataclasses.replace(self.config.laser, max_range=band)
+            self.config = dataclasses.replace(self.config, laser=laser)
+        self.dead_beams = np.all(r == r[0], axis=0) & (r[0] < self.no_return)
+        if self.dead_beams.sum() > max(1, DEAD_SHARE * self.n_beams):
+            self.dead_beams[:] = False  # many: a standing robot in a static world, not padding
+        self.meta["no_return_m"] = round(self.no_return, 3)
+        if self.dead_beams.any():
+            self.meta["dead_beams"] = np.flatnonzero(self.dead_beams).tolist()
 
     def _probe(self, mode: str) -> None:
         """Laser geometry, laser offset and the kind of log, from the records up to the
@@ -544,6 +591,8 @@ class CarmenLog(Source):
             ranges = ranges.copy()
             with np.errstate(invalid="ignore"):  # no return; other ranges out of range are
                 ranges[ranges >= min(self.no_return, rec["max_range"])] = np.nan  # plausibility's
+            if len(ranges) == len(self.dead_beams):
+                ranges[self.dead_beams] = np.nan
             n_scans += 1
             yield from hold.event(LaserScan(t, ranges, bearings))
         yield from hold.flush()
