@@ -356,3 +356,22 @@ def test_run_lists_the_findings_in_report_json(tmp_path, capsys):
     assert any("ranges out of range" in w for w in rep["reader"]["warnings"])
     assert main([*argv, "--strict", "--out", str(tmp_path / "s")]) == 2
     assert "laser ranges out of range" in capsys.readouterr().err
+
+
+def test_bag_shares_the_rules(tmp_path):
+    """A ROS bag goes through the same rules: a scan stamped before the last event is noted
+    as a stamp out of order with its message, listed with the rules' limits; ``strict``
+    refuses it naming the topic and message."""
+    pytest.importorskip("rosbags")
+    from readers_helpers import write_bag
+
+    path = tmp_path / "b.bag"
+    write_bag(path, True, backwards_scan=5)
+    log = open_log(path)
+    list(log)
+    summary = log.problems.summary()["plausibility"]
+    assert summary["stamps_out_of_order"]["count"] == 1, summary
+    assert "/scan message 3" in summary["stamps_out_of_order"]["first"]
+    assert summary["rules"]["laser_range_m"] == [0.0, 30.0]  # the bag's own range_max
+    with pytest.raises(ReaderError, match=r"/scan message 3.*--strict"):
+        list(open_log(path, strict=True))

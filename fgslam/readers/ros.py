@@ -514,7 +514,9 @@ class RosBag(Source):
             )
         return found[0]
 
-    def __iter__(self) -> Iterator[Event]:
+    def events(self) -> Iterator[Event]:
+        """The bag's events of one pass (checked by the shared plausibility rules in
+        :meth:`Source.__iter__`)."""
         self._new_pass()
         drive = VirtualDrive(self.config)
         hold = StaleOdometryHold(drive, self.limits, self._odo_notes)
@@ -528,6 +530,11 @@ class RosBag(Source):
         carried = np.zeros(3)
         array_of = {t: i for i, t in enumerate(self.range_topics)}
         wanted = {self.scan_topic, self.odom_topic, *self.range_topics}
+
+        def late(topic: str, number: int, t: float, last: float) -> None:
+            what = "a bad stamp" if math.isnan(t) else f"stamped {t:.6f} s"
+            pr.backward(topic, f"{topic} message {number}: {what}, before {last:.6f} s")
+
         with self._open() as reader:
             conns = [c for c in reader.connections if c.topic in wanted]
             count = dict.fromkeys(wanted, 0)
@@ -558,27 +565,22 @@ class RosBag(Source):
                     if first_odom:
                         first_odom = False
                         if bad:
-                            pr.backwards[conn.topic] += 1
+                            late(conn.topic, count[conn.topic], t, last)
                         else:
                             last = max(last, t)
                         continue
                     if inc is None:  # a jump: dropped (OdometryJumps)
-                        text = (
-                            f"{self.name}: {conn.topic} at t={t:.6f}: implausible odometry: {why}"
+                        pr.findings.note(
+                            "odometry", f"{conn.topic} at t={t:.6f}: {why}", skipped=True
                         )
-                        if self.strict:
-                            raise ReaderError(
-                                text + " (refused with --strict; without it, skipped and counted)"
-                            )
                         self._odo_notes["implausible"] += 1
-                        pr.skip("implausible odometry", text)
                         continue
                     carried = compose(carried, inc)
                     if bad:  # carried into the next message, as one going backwards
-                        pr.backwards[conn.topic] += 1
+                        late(conn.topic, count[conn.topic], t, last)
                         continue
                     if t < last:
-                        pr.backwards[conn.topic] += 1
+                        late(conn.topic, count[conn.topic], t, last)
                         continue
                     last = t
                     yield from hold.odometry(t, carried)
@@ -586,7 +588,7 @@ class RosBag(Source):
                     last_odo_in, in_hole = t, False
                     continue
                 if bad or t < last:
-                    pr.backwards[conn.topic] += 1
+                    late(conn.topic, count[conn.topic], t, last)
                     continue
                 last = t
                 if conn.topic == self.scan_topic and t - last_odo_in > self.limits.hole:
@@ -618,5 +620,5 @@ class RosBag(Source):
                     yield from hold.event(SonarReading(t, array_of[conn.topic], 0.0, echoes))
         yield from hold.flush()
         self.problems.notes["warnings"] = input_warnings(
-            n_scans, drive.travel, self._odo_notes, self.meta.get("timestamps")
+            n_scans, drive.travel, self._odo_notes, self.meta.get("timestamps"), implausible=False
         )
