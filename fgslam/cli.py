@@ -755,7 +755,7 @@ def _cmd_convert(args: argparse.Namespace) -> int:
     reader = open_log(args.log, **_reader_options(args))
     counts: Counter = Counter()
     try:  # the log appears at --out only when complete (LogWriter writes a temporary file)
-        with LogWriter(args.out, reader.config, reader.world, meta=reader.meta) as w:
+        with reader, LogWriter(args.out, reader.config, reader.world, meta=reader.meta) as w:
             for ev in reader:
                 w.write(ev)
                 counts[type(ev).__name__] += 1

@@ -168,6 +168,22 @@ def format_record(event: Event) -> str:
     raise TypeError(f"not a log event: {type(event).__name__}")
 
 
+def _finite_float(text: str) -> float:
+    v = float(text)
+    if not math.isfinite(v):
+        raise ValueError(f"number {text} is not finite")
+    return v
+
+
+def _no_constant(name: str) -> float:
+    raise ValueError(f"{name} is not a JSON number")
+
+
+def _strict_loads(text: str) -> Any:
+    """Strict JSON, as :func:`_json` writes it: no NaN, Infinity or numbers beyond a float."""
+    return json.loads(text, parse_float=_finite_float, parse_constant=_no_constant)
+
+
 def _json(data: Any, sort_keys: bool = False) -> str:
     """Compact one-line strict JSON."""
     return json.dumps(data, separators=(",", ":"), allow_nan=False, sort_keys=sort_keys)
@@ -556,7 +572,7 @@ class LogReader:
                 world = rest
                 continue
             try:
-                data = json.loads(rest)
+                data = _strict_loads(rest)
             except (ValueError, RecursionError) as exc:
                 raise self._fatal(lineno, f"{tag} header: expected a JSON object ({exc})") from None
             if not isinstance(data, dict):

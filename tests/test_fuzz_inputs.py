@@ -159,3 +159,83 @@ def override_file(draw) -> str:
 @settings(max_examples=300, deadline=None)
 def test_fuzz_config_toml(tmp_path_factory, text):
     assert _outcome(tmp_path_factory.mktemp("cfg"), text) in ("loaded", "refused")
+
+
+# -- the campaign's escapes on the log paths (each a traceback on 0730085), through convert
+
+
+def _convert(tmp_path, capsys, log) -> str:
+    """``fgslam convert`` of ``log``: exit status 2 and one error line naming it."""
+    from fgslam.cli import main
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no raw warning (an unclosed file) either
+        rc = main(["convert", str(log), "--out", str(tmp_path / "o.log")])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and len(err.splitlines()) == 1 and log.name in err, err
+    return err
+
+
+@pytest.mark.parametrize("value", ["NaN", "-Infinity", "1e400"])
+def test_native_header_with_a_number_json_cannot_hold(tmp_path, capsys, value):
+    """A META value of NaN, Infinity or beyond a float: refused naming the line (it was
+    read, then the log writer's strict JSON failed)."""
+    from readers_helpers import write_native
+
+    f = tmp_path / "n.log"
+    write_native(f, n=5)
+    lines = f.read_text().splitlines()
+    lines.insert(3, f'META {{"x": {value}}}')
+    f.write_text("\n".join(lines) + "\n")
+    assert re.search(r"n\.log:4: META header", _convert(tmp_path, capsys, f))
+
+
+def _robotlaser(start: str = "-0.785398", offset: str | None = None) -> str:
+    n = 91
+    lines = [f"PARAM robot_frontlaser_offset {offset} h 0"] if offset else []
+    for k in range(3):
+        t, x = 1.0 + k, 0.1 * k
+        lines.append(f"ODOM {x} 0 0 0 0 0 {t} h {t}")
+        lines.append(
+            f"ROBOTLASER1 0 {start if k == 1 else '-0.785398'} 1.570796 0.017453 30 0.01 0 {n} {' '.join(['2.5'] * n)} "
+            f"2 7 8 {x + 0.2} 0.05 0.1 {x} 0 0 0.1 0 0.5 0.3 1e6 {t} h {t}"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def test_carmen_robotlaser1_start_angle_beyond_one_turn(tmp_path, capsys):
+    """A scan's start angle of 1e20 rad: beams that do not increase; refused naming the
+    line."""
+    f = tmp_path / "rl.clf"
+    f.write_text(_robotlaser(start="99999999999999999999"))
+    assert "rl.clf:4: ROBOTLASER1: start angle" in _convert(tmp_path, capsys, f)
+
+
+@pytest.mark.parametrize("offset", ["1e400", "inf", "-50"])
+def test_carmen_laser_offset_that_is_no_mount(tmp_path, capsys, offset):
+    f = tmp_path / "off.clf"
+    f.write_text(_robotlaser(offset=offset))
+    assert "robot_frontlaser_offset" in _convert(tmp_path, capsys, f)
+
+
+def test_ros2_metadata_with_a_list_for_a_name_or_a_type_over_two_lines(tmp_path, capsys):
+    """A ROS 2 bag whose metadata.yaml gives a topic name as a list (rosbags: TypeError) or a
+    message type with a line break: one line naming the bag."""
+    pytest.importorskip("rosbags")
+    import shutil
+
+    from readers_helpers import write_bag
+
+    good = tmp_path / "good"
+    write_bag(good, False, n=5)
+    for old, new in (
+        ("name: /sonar", "name: []"),
+        ("type: nav_msgs/msg/Odometry", 'type: "nav_msgs/msg/Odometry\\n| RIHS01"'),
+    ):
+        bag = tmp_path / "bag"
+        shutil.rmtree(bag, ignore_errors=True)
+        shutil.copytree(good, bag)
+        meta = (bag / "metadata.yaml").read_text()
+        assert old in meta
+        (bag / "metadata.yaml").write_text(meta.replace(old, new))
+        _convert(tmp_path, capsys, bag)

@@ -94,6 +94,7 @@ from fgslam.readers.sanity import (
 MODES = ("auto", "corrected", "raw")
 MAX_COORD = 1e7  # m (and rad): a pose field beyond is not a pose
 NO_RETURN = 80.0
+MAX_LASER_OFFSET = 10.0  # m: a robot_frontlaser_offset beyond is not a mount
 # the no-return probe (CarmenLog._probe_no_return): scans read, fewest to decide on, the band
 # below the log's largest reading taken as the saturation value, and the share of readings
 # in it that makes it one (real returns within 1 % of the largest are far rarer)
@@ -210,6 +211,11 @@ def parse_record(f: list[str]) -> dict:
         fov = math.degrees(head[1])
         if not 0 < fov <= 360:
             raise _Bad(f"ROBOTLASER1: field of view {fov} deg")
+        if not abs(head[0]) <= 2 * math.pi:
+            raise _Bad(f"ROBOTLASER1: start angle {head[0]:.6g} rad (beyond one turn)")
+        span = _span(fov, head[2], n)
+        if not 0 < span <= 360 or (n > 1 and math.radians(span) / (n - 1) < 1e-6):
+            raise _Bad(f"ROBOTLASER1: {n} beams over {span:.6g} deg")
         return {
             "tag": tag,
             "ranges": ranges,
@@ -218,7 +224,7 @@ def parse_record(f: list[str]) -> dict:
             "laser_pose": _pose(tail[0:3], "ROBOTLASER1 laser"),
             "t": _stamp(tail[11], "ROBOTLASER1"),
             "t_logger": _logger(f[-1]),
-            "fov": _span(fov, head[2], n),
+            "fov": span,
             "start": head[0],
             "max_range": head[3] if head[3] > 0 else math.inf,
         }
@@ -410,6 +416,11 @@ class CarmenLog(Source):
                     offset = float(rec["value"])
                 except ValueError:
                     pass
+                if not abs(offset) <= MAX_LASER_OFFSET:
+                    raise ReaderError(
+                        f"{self.name}: PARAM robot_frontlaser_offset {rec['value']}: not a "
+                        f"laser mount (beyond {MAX_LASER_OFFSET:g} m)"
+                    )
             if first is not None and rec["tag"] in ("ODOM", *LASER_TAGS):
                 after_first = rec
                 break

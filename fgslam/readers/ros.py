@@ -147,6 +147,11 @@ def bag_messages(reader: Any, conns: Sequence[Any], name: str) -> Iterator[tuple
         yield item
 
 
+def _printable(text: str) -> str:
+    """A name from the bag as one line (control characters escaped)."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
 def _cause(exc: BaseException) -> str:
     """One line: the exception's type and the first line of its message."""
     text = str(exc).strip()
@@ -321,7 +326,7 @@ class RosBag(Source):
         self._typestore = get_typestore(Stores.ROS2_HUMBLE)
         self.tolerant = tolerant
         with self._open() as reader:
-            topics = {name: info.msgtype for name, info in reader.topics.items()}
+            topics = self._topics
             self.scan_topic = self._pick(topics, scan_topic, SCAN, "--scan-topic")
             self.odom_topic = self._pick(topics, odom_topic, ODOM, "--odom-topic")
             self.range_topics = [
@@ -410,6 +415,7 @@ class RosBag(Source):
             try:
                 msg = reader.deserialize(raw, conn.msgtype)
                 header = _stamp(msg)
+                record = 1e-9 * float(bag_ns)
             except Exception:  # the reading pass reports it
                 continue
             if first is None and conn.topic == self.scan_topic:
@@ -417,7 +423,7 @@ class RosBag(Source):
             k, h, b = self._stamps[conn.topic]
             k.append(count[conn.topic])
             h.append(header)
-            b.append(1e-9 * float(bag_ns))
+            b.append(record)
         return first
 
     def _bases(self, reader: Any) -> list[str]:
@@ -490,6 +496,10 @@ class RosBag(Source):
         try:
             reader = self._AnyReader([Path(self.path)], default_typestore=self._typestore)
             reader.open()
+            self._topics = {
+                _printable(str(name)): _printable(str(info.msgtype))
+                for name, info in reader.topics.items()
+            }
             reader.close()
         except Exception as exc:  # the library, on the file's bytes (any of its failures)
             raise ReaderError(f"{self.name}: cannot read the bag ({_cause(exc)})") from None
@@ -604,7 +614,8 @@ class RosBag(Source):
                             f"from {msg.angle_min:g} rad by {msg.angle_increment:g} rad",
                         )
                         continue
-                    r = np.array(msg.ranges, dtype=float)
+                    with np.errstate(invalid="ignore"):  # a signalling NaN among float32s
+                        r = np.array(msg.ranges, dtype=float)
                     with np.errstate(invalid="ignore"):
                         bad = ~np.isfinite(r) | (r < msg.range_min) | (r >= msg.range_max)
                     r[bad | (r <= 0)] = np.nan

@@ -64,6 +64,9 @@ class VictoriaPark:
         return {s.landmark for v in self.sightings.values() for s in v}
 
 
+MAX_VALUE = 1e12  # no position, angle or variance of a park is larger
+
+
 class _Bad(Exception):
     pass
 
@@ -80,6 +83,8 @@ def _nums(tok: list[str], n_int: int, n: int, what: str) -> tuple[list[int], lis
         raise _Bad(f"{what}: negative index")
     if not all(math.isfinite(v) for v in vals):
         raise _Bad(f"{what}: expected finite numbers")
+    if not all(abs(v) <= MAX_VALUE for v in vals):
+        raise _Bad(f"{what}: a number beyond {MAX_VALUE:g} (m, rad or their squares)")
     return ints, vals
 
 
