@@ -193,11 +193,13 @@ def test_native_header_with_a_number_json_cannot_hold(tmp_path, capsys, value):
 def _robotlaser(start: str = "-0.785398", offset: str | None = None) -> str:
     n = 91
     lines = [f"PARAM robot_frontlaser_offset {offset} h 0"] if offset else []
+    ranges = " ".join(["2.5"] * n)
     for k in range(3):
         t, x = 1.0 + k, 0.1 * k
+        a = start if k == 1 else "-0.785398"
         lines.append(f"ODOM {x} 0 0 0 0 0 {t} h {t}")
         lines.append(
-            f"ROBOTLASER1 0 {start if k == 1 else '-0.785398'} 1.570796 0.017453 30 0.01 0 {n} {' '.join(['2.5'] * n)} "
+            f"ROBOTLASER1 0 {a} 1.570796 0.017453 30 0.01 0 {n} {ranges} "
             f"2 7 8 {x + 0.2} 0.05 0.1 {x} 0 0 0.1 0 0.5 0.3 1e6 {t} h {t}"
         )
     return "\n".join(lines) + "\n"
