@@ -57,3 +57,21 @@ def test_world_help_names_every_built_in_world():
     from fgslam.sim.world import BUILTIN_WORLDS
 
     assert all(name in WORLD_HELP for name in BUILTIN_WORLDS)
+
+
+@pytest.mark.parametrize("value", [1e308, -1e20, 1e7])
+def test_world_with_a_coordinate_beyond_any_building(tmp_path, capsys, value):
+    """A wall point at 1e308 m: refused naming the element (it once simulated on with numpy
+    overflow warnings and infinite segments)."""
+    import warnings
+    from importlib.resources import files
+
+    world = json.loads((files("fgslam") / "data" / "world_corridor.json").read_text())
+    world["walls"][0]["points"][1][0] = value
+    w = tmp_path / "w.json"
+    w.write_text(json.dumps(world))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        rc = main(["simulate", "--world", str(w), "--duration", "1", "--out", str(tmp_path / "x")])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "walls[0]" in err and "\n" not in err, err

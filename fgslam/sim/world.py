@@ -192,6 +192,9 @@ def point_segment_distance(points: np.ndarray, segs: np.ndarray) -> np.ndarray:
 # ------------------------------------------------------------------ loading and validation
 
 
+MAX_VALUE = 1e6  # no coordinate, size, time or angle of a world is larger
+
+
 def _err(src: str, where: str, msg: str) -> WorldError:
     return WorldError(f"world {src}: {where}: {msg}")
 
@@ -199,6 +202,8 @@ def _err(src: str, where: str, msg: str) -> WorldError:
 def _number(v: Any, src: str, where: str, positive: bool = False, nonneg: bool = False) -> float:
     if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
         raise _err(src, where, f"expected a finite number, got {v!r}")
+    if not abs(v) <= MAX_VALUE:
+        raise _err(src, where, f"{v!r} is beyond {MAX_VALUE:g} (m, s or deg): not a building")
     if positive and v <= 0:
         raise _err(src, where, f"expected a positive number, got {v!r}")
     if nonneg and v < 0:
