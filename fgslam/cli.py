@@ -1217,6 +1217,12 @@ def _one_line_warning(command: str, show: Callable) -> Callable:
     return showwarning
 
 
+def _one_line(text: str) -> str:
+    """An error message as one line: characters that are not printable (line breaks and
+    other separators a file's bytes can put into a key or a name) escaped."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
 def _main(argv: Sequence[str] | None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -1235,7 +1241,7 @@ def _main(argv: Sequence[str] | None) -> int:
         sys.stdout.flush()  # a closed pipe shows here, not at exit
         return status
     except UserError as exc:
-        print(f"fgslam {args.command}: error: {exc}", file=sys.stderr)
+        print(f"fgslam {args.command}: error: {_one_line(str(exc))}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"fgslam {args.command}: interrupted", file=sys.stderr)

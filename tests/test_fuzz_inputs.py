@@ -241,3 +241,18 @@ def test_ros2_metadata_with_a_list_for_a_name_or_a_type_over_two_lines(tmp_path,
         assert old in meta
         (bag / "metadata.yaml").write_text(meta.replace(old, new))
         _convert(tmp_path, capsys, bag)
+
+
+@pytest.mark.parametrize("sep", ["\\n", "\\r", "\\u2028", "\\u001c"])
+def test_error_with_a_line_break_in_a_key_is_one_line(tmp_path, capsys, sep):
+    """A native log whose CONFIG header names a key with a line separator in it (a flipped
+    byte): the error stays on one line, the separator escaped (seen by the fuzz campaign,
+    seed 1)."""
+    from readers_helpers import write_native
+
+    f = tmp_path / "k.log"
+    write_native(f, n=5)
+    lines = f.read_text().splitlines()
+    lines[1] = lines[1].replace('"wheelbase"', f'"wheel{sep}base"', 1)
+    f.write_text("\n".join(lines) + "\n")
+    assert "CONFIG header: unknown key" in _convert(tmp_path, capsys, f)
