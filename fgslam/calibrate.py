@@ -59,8 +59,8 @@ def relative_motions(reference: str | Path, **reader_options: Any) -> NDArray[np
     """Rows ``(t1, t2, x, y, yaw)`` from a relations file, or from consecutive poses of a TUM
     file or a log with truth/reference poses."""
     from factors.geometry import between_poses
+    from fgslam.cli.evaluate import load_reference
     from fgslam.dense import read_relations
-    from fgslam.evaluate_cli import load_reference
 
     p = Path(reference)
     if p.suffix == ".relations":

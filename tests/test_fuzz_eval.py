@@ -24,8 +24,8 @@ from hypothesis import strategies as st
 
 from fgslam import dense, evaluation
 from fgslam.cli import main
+from fgslam.cli.evaluate import load_reference
 from fgslam.errors import EvaluationError, UserError
-from fgslam.evaluate_cli import load_reference
 
 N = 20  # poses of the test trajectory, 0.5 s apart
 
@@ -185,7 +185,7 @@ def test_absurd_tum_line_is_a_line_error(tmp_path, traj, bad, field, role):
 @pytest.mark.parametrize("value", ["1e300", "-1e300", "1e10"])
 def test_absurd_truth_pose_in_a_log_is_not_compared(tmp_path, traj, value):
     """A log's truth record that no pose has (finite, 1e300 m): refused with an error naming
-    the log and the record's time (evaluate_cli), or left out by the reader; never aligned
+    the log and the record's time (fgslam.cli.evaluate), or left out by the reader; never aligned
     with the estimate (an ATE of 1e300 m or inf)."""
     from readers_helpers import write_native
 
@@ -219,7 +219,7 @@ def test_absurd_truth_pose_in_a_log_is_not_compared(tmp_path, traj, value):
 def test_reference_poses_are_checked_as_a_tum_files(pose):
     """What a reader passes on from a log is held to a TUM file's bounds (the backstop of
     load_reference)."""
-    from fgslam.evaluate_cli import _check_reference
+    from fgslam.cli.evaluate import _check_reference
 
     t, poses = _times(4), _truth(4)
     _check_reference("run.log", t, poses)

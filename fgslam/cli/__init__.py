@@ -778,7 +778,7 @@ def _cmd_convert(args: argparse.Namespace) -> int:
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    from fgslam.evaluate_cli import evaluate_command
+    from fgslam.cli.evaluate import evaluate_command
 
     rep = evaluate_command(args)
     print(rep.pop("_text"))
@@ -1246,7 +1246,3 @@ def _main(argv: Sequence[str] | None) -> int:
     except KeyboardInterrupt:
         print(f"fgslam {args.command}: interrupted", file=sys.stderr)
         return 130
-
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
