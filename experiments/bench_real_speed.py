@@ -67,11 +67,12 @@ def split(stats) -> dict:
         return tot
 
     loops = "fgslam/slam/loops.py"
+    sm = "fgslam/scanmatch/"
     out = {
         "total": cum("fgslam/slam/runner.py", "run_backends"),
         "loop_search": cum(loops, "try_close"),
-        "loop_matches": cum("fgslam/scanmatch.py", "match", (loops, "verify")),
-        "loop_map_builds": cum("fgslam/scanmatch.py", "build", (loops, "verify", "reference")),
+        "loop_matches": cum(sm + "matcher.py", "match", (loops, "verify")),
+        "loop_map_builds": cum(sm + "matcher.py", "build", (loops, "verify", "reference")),
         "scan_odometry": cum("fgslam/slam/runner.py", "_select"),
         "front_end": cum("fgslam/frontend/pipeline.py", "process_scan"),
         "step": cum("fgslam/slam/step.py", "keyframe"),
@@ -112,8 +113,8 @@ def timers() -> dict:
     the returned dict (seconds, and ``<key>_calls``)."""
     import functools
 
-    from fgslam import scanmatch
     from fgslam.frontend.pipeline import FrontEnd
+    from fgslam.scanmatch import matcher as scanmatch
     from fgslam.slam import keyframes, loops, step
     from fgslam.slam.graph import GraphBackend
 
