@@ -1,82 +1,5 @@
-"""2-D laser scan matching: correlative search (branch and bound over max-pooled likelihood
-grids) followed by point-to-line ICP, with an honest covariance and a rejection rule.
-
-Frames and units: the reference points are in the *reference* frame, the query points in the
-*query* frame (both m, usually a robot frame: see :func:`scan_points`). A pose (x, y, theta)
-is T_ref_query: the query frame's origin and heading in the reference frame (m, rad).
-
-Pipeline of :func:`match` (DESIGN 5b):
-
-1. **Correlative search** (Olson 2009, Hess et al. 2016 "Cartographer"): the reference is
-   rasterised (points joined to their nearest neighbours within ``link_distance``) into a
-   likelihood grid g = exp(-d^2 / 2 s^2), cut at 3 s (d: distance to the reference, s:
-   ``blur``); the score of a pose is the mean of g over the voxel-filtered query points, in
-   [0, 1]. Every rotation of the window is tried (step: a cell at the far range); for each,
-   translations are searched by branch and bound over grids max-pooled over 2^l x 2^l cells
-   (a bound on every translation of a block), evaluated level by level for all surviving
-   blocks at once. Every pose within ``mode_nats`` / N of the best score survives: the
-   response surface. With the reference's sensor origins (:meth:`Reference.build`), only
-   the query points that fall where the reference's beams looked are scored, which removes
-   the bias towards more overlap (along a corridor).
-2. **Point-to-line ICP** from the best pose: nearest reference point (cKDTree) within
-   ``corr_distance``, the residual along its local line (PCA of its neighbours within
-   ``normal_radius``: normal and centroid), Cauchy weights on a MAD scale, Gauss-Newton in
-   the query's body tangent (GTSAM's Pose2 retract). ICP also starts from up to
-   ``max_basins`` - 1 other basins of the response (poses within ``basin_nats`` / N of the
-   best score, more than 3 cells or 3 rotation steps apart, ending inside the window):
-   the correlative score on its grid is only a proxy, and a periodic scene (doors along a
-   corridor) has several basins of similar score. The results are compared by their cost
-   sum min(r^2 / s2, ``inlier_sigmas``^2) over the query points both match (a point matched
-   at one pose only, far on a grazing wall, says as much about the sampling as about the
-   pose). The estimate stays the best correlative basin's: the others only widen its
-   covariance (3.). Taking the lowest cost instead broke the MIT map (relations 0.037 ->
-   0.043 m, max 0.35 -> 2.6 m).
-3. **Covariance**, body tangent at the estimate (GTSAM's BetweenFactorPose2 convention;
-   ``cov_ref`` in the reference's axes):
-
-   - H = sum J J^T over the inliers, minus what the noise of the reference normals adds to
-     it (sum var(alpha) Jt Jt^T, Jt: the Jacobian along the line): along a featureless wall
-     noisy normals otherwise fake information. var(alpha) is the PCA line's: scatter across
-     the line over the spread along it, the scatter never below ``sigma_range``^2 (the
-     PLS's 5 cm quantum makes a straight wall a staircase whose local fits look straighter,
-     and tilted, than they are: in the simulated corridor those tilts of 3-6 deg were the
-     only information along it, and matches slid by 0.3 m a scan).
-   - s2 = residual variance (sum r^2 / (m - 3)), never below ``sigma_range``^2.
-   - kappa, per axis = ``cov_inflation`` * max(1, S_ii / (s2 H_ii)), S the Newey-West (HAC,
-     ``hac_lags`` beams, Bartlett) covariance of the gradient sum J r in beam order:
-     correlated errors of neighbouring beams, measured on each match. ``cov_inflation`` =
-     1.3 is the rest, measured: Monte Carlo over simulated PLS scans gives mean NEES 3.9
-     (lab) and 4.7 (corridor) with 1.0 (experiments/scanmatch_consistency.py); the reference
-     scan's own noise, shared by neighbouring query points, is what the residuals miss.
-   - cov_icp = (K^-1/2 H K^-1/2 / s2 + P)^-1, P = 3 / w^2 the information of a uniform prior
-     over the window (so that a direction the scan does not constrain gets the window's
-     variance, not infinity).
-   - plus the second moment about the estimate of the response's poses outside the best
-     basin (Mahalanobis^2 > ``basin_chi2`` under cov_icp plus a grid cell), weighted by
-     exp(-``response_gain`` N (score_best - score) / kappa) (Olson 2009's covariance from
-     the response surface, as a Gaussian-mixture moment). A featureless corridor has a
-     ridge of equal scores along it: the covariance is large along it and small across.
-     ``response_gain`` = 3 nats per point per unit score was chosen on the simulated scenes
-     (1 is conservative in corridors; the sensor's own 1/s2 scale, about 10, overconfident
-     where 5 cm quantisation fakes the 4 cm door recesses).
-   - plus, likewise, the other basins' ICP results, weighted by exp(-t^2 / 2), t the cost
-     difference to the estimate's over its own noise (a paired test: sqrt(n kappa) times the
-     spread of the per-point differences): a basin as good as the estimate within the
-     residuals' noise is a tie, weighs as much and widens the covariance over both (then
-     usually rejected as ambiguous), instead of a confident answer one door period off.
-     These basins' response poses no longer count on their own.
-4. **Rejection** (``ok`` False, ``reason``): too few points (query, reference, inliers);
-   diverged (non-finite, or ICP moved beyond the window from the search's pose); score below
-   ``min_score`` (0.5) or inlier fraction below ``min_overlap`` (0.25): on the Intel and
-   Freiburg logs right consecutive pairs score ~0.8, pairs of places 4 m apart median 0.14,
-   at most 0.61 (experiment); ambiguous: the covariance's 1-sigma extent exceeds
-   ``max_ambiguity`` (0.5) of the window's half-width in xy or theta, i.e. the scan hardly
-   narrows the window down in some direction. ``pose`` and ``cov`` are returned even
-   then: an odometry-like caller may use a corridor match with its honest covariance by
-   raising ``max_ambiguity``.
-
-numpy/scipy only, no I/O.
-"""
+"""The public matcher: :func:`match` (the pipeline of :mod:`fgslam.scanmatch`: search,
+ICP from each basin, covariance, rejection) and its result, :class:`Match`."""
 
 from __future__ import annotations
 
@@ -87,117 +10,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
-__all__ = ["Match", "MatchParams", "Reference", "match", "scan_points"]
-
-
-@dataclass(frozen=True)
-class MatchParams:
-    """Parameters of :func:`match` (m, rad). Zero for a derived parameter means "derive it"
-    (see the field's comment); :meth:`for_laser` derives them from the sensor."""
-
-    search_xy: float = 0.3  # half-width (m) of the correlative search window around the guess
-    search_theta: float = 0.25  # half-width (rad)
-    resolution: float = 0.03  # finest grid cell (m)
-    sigma_range: float = 0.01  # laser range noise (m): from the sensor configuration
-    max_range: float = 30.0  # beams beyond are ignored (m)
-    # correlative search
-    angular_step: float = 0.0  # rad between rotations; 0: resolution / far range (1-10 m)
-    blur: float = 0.0  # likelihood grid's Gaussian s (m); 0: max(resolution, 2 sigma_range)
-    levels: int = 0  # branch-and-bound pyramid depth; 0: coarsest block ~ window / 2
-    voxel: float = 0.0  # query voxel filter for the search (m); 0: resolution
-    link_distance: float = 0.3  # reference neighbours closer than this are joined (m)
-    max_candidates: int = 3000  # most branch-and-bound nodes kept per level
-    max_cells: int = 16_000_000  # largest likelihood grid; a wider reference gets coarser cells
-    mode_nats: float = 7.0  # response poses within this log-likelihood of the best are kept
-    min_coverage: float = 0.3  # fewer query points in the reference's view: search with all
-    response_gain: float = 3.0  # nats per point per unit of score in the response weights
-    basin_chi2: float = 11.34  # response poses within this Mahalanobis^2 are the best's basin
-    # ICP
-    icp_iterations: int = 15
-    corr_distance: float = 0.3  # largest distance to a corresponding reference point (m)
-    normal_radius: float = 0.25  # neighbourhood of a reference point for its normal (m)
-    normal_k: int = 24  # at most this many neighbours (including the point)
-    robust_scale: float = 3.0  # Cauchy scale in units of the residual sigma
-    inlier_sigmas: float = 3.0  # inlier: |point-to-line residual| below this many sigmas
-    # covariance
-    hac_lags: int = 10  # beams over which residuals may be correlated (Newey-West)
-    max_kappa: float = 25.0  # cap on the per-axis inflation from correlated residuals
-    cov_inflation: float = 1.3  # constant factor on top of the measured per-axis inflation
-    # model error the residuals cannot show (surfaces sampled at other places by the two
-    # scans, clutter that is not a line): independent variance added to every match (m, rad)
-    floor_xy: float = 0.0
-    floor_theta: float = 0.0
-    # rejection
-    min_points: int = 20  # fewer query or reference points: rejected
-    min_score: float = 0.5  # correlative score below: rejected
-    min_overlap: float = 0.25  # inlier fraction below: rejected
-    max_ambiguity: float = 0.5  # 1-sigma extent / window half-width above: rejected
-    max_basins: int = 4  # ICP from this many distinct basins of the response; 1: the best only
-    # response poses within this (score x points) below the best are basin starts: on the
-    # 3-5 cm grid a basin one door period off scored 8 below the right one in a periodic
-    # corridor (tests), so the starts reach further than the response's mode_nats
-    basin_nats: float = 20.0
-
-    @classmethod
-    def for_laser(
-        cls, sigma_range: float, angular_step: float, max_range: float, **kw: float
-    ) -> MatchParams:
-        """Defaults derived from the sensor: range noise ``sigma_range`` (m), beam spacing
-        ``angular_step`` (rad), ``max_range`` (m). The grid cell is 2 sigma (3 cm to 5 cm);
-        neighbouring beams at 10 m are joined and corresponded (at least 0.2 m)."""
-        spacing = 10.0 * abs(angular_step)
-        base = {
-            "sigma_range": float(sigma_range),
-            "max_range": float(max_range),
-            "resolution": float(np.clip(2.0 * sigma_range, 0.03, 0.05)),
-            "link_distance": max(0.2, 1.7 * spacing),
-            "corr_distance": max(0.2, 1.7 * spacing),
-            "normal_radius": max(0.25, 2.2 * spacing),
-        }
-        base.update(kw)
-        # model error: half a grid cell and one beam (measured on real logs' relations)
-        base.setdefault("floor_xy", 0.5 * float(base["resolution"]))
-        base.setdefault("floor_theta", abs(float(angular_step)))
-        return cls(**base)  # type: ignore[arg-type]
-
-
-def scan_points(
-    ranges: ArrayLike,
-    bearings: ArrayLike,
-    mount: ArrayLike = (0.0, 0.0, 0.0),
-    max_range: float = math.inf,
-) -> NDArray[np.float64]:
-    """(N, 2) robot-frame points (m) of the finite, positive ranges below ``max_range``, in
-    beam order. ``bearings`` (rad) are in the laser frame; ``mount`` is the laser's pose in
-    the robot frame (x, y, yaw)."""
-    r = np.asarray(ranges, dtype=float).ravel()
-    b = np.asarray(bearings, dtype=float).ravel()
-    n = min(r.size, b.size)
-    r, b = r[:n], b[:n]
-    with np.errstate(invalid="ignore"):
-        ok = np.isfinite(r) & np.isfinite(b) & (r > 0) & (r < max_range)
-    r, b = r[ok], b[ok]
-    mx, my, myaw = (float(v) for v in np.asarray(mount, dtype=float).ravel()[:3])
-    a = b + myaw
-    return np.column_stack([mx + r * np.cos(a), my + r * np.sin(a)])
-
-
-def _clean(points: ArrayLike) -> NDArray[np.float64]:
-    p = np.asarray(points, dtype=float)
-    if p.size == 0:
-        return np.zeros((0, 2))
-    p = p.reshape(-1, 2) if p.ndim != 2 or p.shape[1] != 2 else p
-    p = p[np.isfinite(p).all(axis=1)]
-    return p[np.abs(p).max(axis=1) < 1e6] if len(p) else p
-
-
-def _rot(th: float) -> NDArray[np.float64]:
-    c, s = math.cos(th), math.sin(th)
-    return np.array([[c, -s], [s, c]])
-
-
-def _wrap(a: float) -> float:
-    return math.remainder(a, 2.0 * math.pi)
+from factors.geometry import rot
+from fgslam.scanmatch.params import MatchParams
+from fgslam.scanmatch.points import _clean, _voxel, _wrap
 
 
 def _expmap(pose: NDArray, xi: NDArray) -> NDArray:
@@ -208,21 +23,12 @@ def _expmap(pose: NDArray, xi: NDArray) -> NDArray:
     else:
         s, c = math.sin(w), math.cos(w)
         v = np.array([s * xi[0] - (1 - c) * xi[1], (1 - c) * xi[0] + s * xi[1]]) / w
-    t = pose[:2] + _rot(float(pose[2])) @ v
+    t = pose[:2] + rot(float(pose[2])) @ v
     return np.array([t[0], t[1], _wrap(float(pose[2]) + w)])
 
 
 def _blur(params: MatchParams) -> float:
     return params.blur or max(params.resolution, 2.0 * params.sigma_range)
-
-
-def _voxel(points: NDArray, size: float) -> NDArray:
-    """One point per ``size`` cell (the first in order), order kept."""
-    if len(points) == 0 or size <= 0:
-        return points
-    key = np.floor(points / size).astype(np.int64)
-    _, first = np.unique(key[:, 0] * 3_000_017 + key[:, 1], return_index=True)
-    return points[np.sort(first)]
 
 
 class Reference:
@@ -506,7 +312,7 @@ def _search(ref: Reference, q: NDArray, guess: NDArray, params: MatchParams) -> 
     n = math.ceil(params.search_xy / res)
     top = _top_block(params, n)
     # the points the reference could have seen at every pose of the window (with a margin)
-    qr = q @ _rot(float(guess[2])).T + guess[:2]
+    qr = q @ rot(float(guess[2])).T + guess[:2]
     use = ref.covered(qr, params.search_theta, params.search_xy)
     if use.sum() >= max(params.min_coverage * len(q), 3):
         q = q[use]
@@ -605,7 +411,7 @@ def _correspond(ref: Reference, q: NDArray, pose: NDArray, params: MatchParams) 
     ``corr_distance`` that has a normal, their neighbours ``jj`` (for every query point),
     the neighbours' normals (every query point) and the signed residuals (m) of ``idx``."""
     assert ref.tree is not None
-    R = _rot(float(pose[2]))
+    R = rot(float(pose[2]))
     p = q @ R.T + pose[:2]
     d, j = ref.tree.query(p, distance_upper_bound=params.corr_distance)
     ok = np.isfinite(d)
@@ -815,7 +621,7 @@ def match(
     alts: list[tuple[_Icp, float, float]] = []
     owned = np.zeros(len(resp.poses), dtype=bool)
     if len(seeds) > 1 and len(icp.r) >= 6:
-        qr = q @ _rot(float(g[2])).T + g[:2]
+        qr = q @ rot(float(g[2])).T + g[:2]
         use = ref.covered(qr, params.search_theta, params.search_xy)
         qc = q[use] if use.sum() >= max(params.min_coverage * len(q), 3) else q
         s2_0 = max(params.sigma_range**2, float(icp.r @ icp.r) / max(len(icp.r) - 3, 1))
@@ -872,7 +678,7 @@ def match(
     cov_icp = np.linalg.inv(H)
     # response surface: other poses' spread about the estimate (reference axes)
     A = np.eye(3)
-    A[:2, :2] = _rot(float(pose[2]))
+    A[:2, :2] = rot(float(pose[2]))
     d = resp.poses - pose
     d[:, 2] = (d[:, 2] + math.pi) % (2 * math.pi) - math.pi
     nats = resp.n / kappa * params.response_gain * (score - resp.scores)

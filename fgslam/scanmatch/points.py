@@ -1,0 +1,55 @@
+"""Points and angles: a scan's robot-frame points (:func:`scan_points`), the cleaning and
+voxel filter of point sets, and the matcher's angle wrap."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+
+def scan_points(
+    ranges: ArrayLike,
+    bearings: ArrayLike,
+    mount: ArrayLike = (0.0, 0.0, 0.0),
+    max_range: float = math.inf,
+) -> NDArray[np.float64]:
+    """(N, 2) robot-frame points (m) of the finite, positive ranges below ``max_range``, in
+    beam order. ``bearings`` (rad) are in the laser frame; ``mount`` is the laser's pose in
+    the robot frame (x, y, yaw)."""
+    r = np.asarray(ranges, dtype=float).ravel()
+    b = np.asarray(bearings, dtype=float).ravel()
+    n = min(r.size, b.size)
+    r, b = r[:n], b[:n]
+    with np.errstate(invalid="ignore"):
+        ok = np.isfinite(r) & np.isfinite(b) & (r > 0) & (r < max_range)
+    r, b = r[ok], b[ok]
+    mx, my, myaw = (float(v) for v in np.asarray(mount, dtype=float).ravel()[:3])
+    a = b + myaw
+    return np.column_stack([mx + r * np.cos(a), my + r * np.sin(a)])
+
+
+def _clean(points: ArrayLike) -> NDArray[np.float64]:
+    p = np.asarray(points, dtype=float)
+    if p.size == 0:
+        return np.zeros((0, 2))
+    p = p.reshape(-1, 2) if p.ndim != 2 or p.shape[1] != 2 else p
+    p = p[np.isfinite(p).all(axis=1)]
+    return p[np.abs(p).max(axis=1) < 1e6] if len(p) else p
+
+
+def _wrap(a: float) -> float:
+    """``a`` wrapped to [-pi, pi] by an exact IEEE remainder. Not factors.geometry's
+    wrap_angle, which rounds a + pi (wrap_angle(0.1) = 0.1 + 1e-16) and maps -pi to pi:
+    that would change matches in the last bits."""
+    return math.remainder(a, 2.0 * math.pi)
+
+
+def _voxel(points: NDArray, size: float) -> NDArray:
+    """One point per ``size`` cell (the first in order), order kept."""
+    if len(points) == 0 or size <= 0:
+        return points
+    key = np.floor(points / size).astype(np.int64)
+    _, first = np.unique(key[:, 0] * 3_000_017 + key[:, 1], return_index=True)
+    return points[np.sort(first)]
