@@ -72,7 +72,7 @@ def split(stats) -> dict:
         "total": cum("fgslam/slam/runner.py", "run_backends"),
         "loop_search": cum(loops, "try_close"),
         "loop_matches": cum(sm + "matcher.py", "match", (loops, "verify")),
-        "loop_map_builds": cum(sm + "matcher.py", "build", (loops, "verify", "reference")),
+        "loop_map_builds": cum(sm + "reference.py", "build", (loops, "verify", "reference")),
         "scan_odometry": cum("fgslam/slam/runner.py", "_select"),
         "front_end": cum("fgslam/frontend/pipeline.py", "process_scan"),
         "step": cum("fgslam/slam/step.py", "keyframe"),

@@ -85,8 +85,9 @@ Modules: :mod:`~fgslam.scanmatch.params` (:class:`MatchParams`), :mod:`~fgslam.s
 numpy/scipy only, no I/O.
 """
 
-from fgslam.scanmatch.matcher import Match, Reference, match
+from fgslam.scanmatch.matcher import Match, match
 from fgslam.scanmatch.params import MatchParams
 from fgslam.scanmatch.points import scan_points
+from fgslam.scanmatch.reference import Reference
 
 __all__ = ["Match", "MatchParams", "Reference", "match", "scan_points"]
