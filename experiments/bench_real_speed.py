@@ -114,7 +114,7 @@ def timers() -> dict:
     import functools
 
     from fgslam.frontend.pipeline import FrontEnd
-    from fgslam.scanmatch import matcher as scanmatch
+    from fgslam.scanmatch import basins, matcher
     from fgslam.slam import keyframes, loops, step
     from fgslam.slam.graph import GraphBackend
 
@@ -138,14 +138,15 @@ def timers() -> dict:
         (step.SlamStep, "keyframe", "step"),
         (loops.LoopCloser, "try_close", "loops"),
         (GraphBackend, "commit", "commit"),
-        (scanmatch, "_search", "search"),
-        (scanmatch, "_icp", "icp"),
+        (matcher, "_search", "search"),
     ]:
         setattr(owner, name, timed(key, getattr(owner, name)))
-    build = timed("build", scanmatch.Reference.build.__func__)
-    scanmatch.Reference.build = classmethod(build)
-    match = timed("match", scanmatch.match)
-    keyframes.match = loops.match = scanmatch.match = match
+    # ICP runs from the best basin (matcher) and from the others (basins)
+    matcher._icp = basins._icp = timed("icp", matcher._icp)
+    build = timed("build", matcher.Reference.build.__func__)
+    matcher.Reference.build = classmethod(build)
+    match = timed("match", matcher.match)
+    keyframes.match = loops.match = matcher.match = match
     return spent
 
 

@@ -276,7 +276,7 @@ def test_basin_runs_stopped_early_give_the_same_match(monkeypatch):
     """An extra basin's ICP run stops once it settles next to a basin already found (a
     speed-up): every field of the match equals that of running each ICP to its end, on
     periodic corridors (several basins) and lab scenes; and the stop does happen."""
-    import fgslam.scanmatch.matcher as sm
+    import fgslam.scanmatch.basins as sm
 
     segs = door_corridor(0.5, 0.3, 0.04)
     b = np.linspace(-math.pi / 2, math.pi / 2, 361)
@@ -322,7 +322,7 @@ def test_basin_runs_stopped_early_give_the_same_match(monkeypatch):
 
 
 def test_median_abs_is_numpys_median():
-    from fgslam.scanmatch.matcher import _median_abs
+    from fgslam.scanmatch.icp import _median_abs
 
     rng = np.random.default_rng(3)
     for n in (1, 2, 3, 4, 51, 200):
