@@ -35,8 +35,12 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from fgslam.readers.victoria import read_victoria
-from fgslam.slam.point_calibration import self_calibrate
-from fgslam.slam.pointslam import POINT_MAP_PARAMS, association_agreement, run_points
+from fgslam.slam.pointslam import (
+    POINT_MAP_PARAMS,
+    association_agreement,
+    run_points,
+    self_calibrate,
+)
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "victoria_park.txt"
 SAME_TREE = 1.0  # m: sightings' sigma 0.63 m; two indices never seen together this close

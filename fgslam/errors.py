@@ -10,6 +10,10 @@ class EvaluationError(UserError, ValueError):
     align, non-finite or overflowing values. A ValueError too, for callers that catch that."""
 
 
+class ReaderError(UserError, ValueError):
+    """A foreign log cannot be read; the message is one line naming file (and line)."""
+
+
 class OutputWarning(UserWarning):
     """An output of a run (a file) that could not be written; the others were. The CLI shows
     it as one line naming the output and the cause."""

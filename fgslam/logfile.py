@@ -29,7 +29,7 @@ from typing import IO, Any
 import numpy as np
 
 from fgslam.config import ConfigError, RobotConfig, from_dict
-from fgslam.errors import UserError
+from fgslam.errors import ReaderError, UserError
 from fgslam.events import (
     SONAR_KINDS,
     Event,
@@ -630,8 +630,6 @@ class LogReader:
         """One pass over the records' stamps (tag and stamp only): the defects of the log's
         clock per stream, the clock chosen (:func:`fgslam.readers.sanity.choose_clock`), the
         records with sporadic bad stamps, and with ``index`` every record's stamp."""
-        from fgslam.readers.common import ReaderError
-
         if requested not in CLOCKS:
             raise LogFormatError(
                 f"unknown --timestamps {requested!r} for an fgslam log; expected one of {CLOCKS}"

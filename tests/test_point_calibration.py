@@ -10,13 +10,8 @@ import numpy as np
 import pytest
 
 from fgslam.readers.victoria import Sighting, Step, VictoriaPark
-from fgslam.slam.point_calibration import (
-    fit_scale,
-    scaled_covariance,
-    self_calibrate,
-    sighting_nll,
-)
-from fgslam.slam.pointslam import association_agreement, run_points
+from fgslam.slam.point_calibration import fit_scale, scaled_covariance, sighting_nll
+from fgslam.slam.pointslam import association_agreement, run_points, self_calibrate
 
 STATED = np.diag([0.02, 0.01, 0.002]) ** 2  # the covariance every step claims
 

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from fgslam.readers.common import ReaderError, StrPath, head_text
-from fgslam.readers.sanity import BACKWARDS_TOLERANCE, INDEX_PERIOD
+from fgslam.readers.sanity import BACKWARDS_TOLERANCE, INDEX_PERIOD, NoUsableClock
 
 FORMATS = ("fgslam", "carmen", "ros", "victoria")
 
@@ -109,7 +109,6 @@ def _open_native(path: StrPath, options: dict[str, Any]):
     in record order (``index``) unless ``strict``, the reason in ``clock_record["fallback"]``
     and ``["clock"]``."""
     from fgslam.logfile import LogFormatError, LogReader
-    from fgslam.readers.common import NoUsableClock
 
     timestamps = options.get("timestamps") or "auto"
     kw = {

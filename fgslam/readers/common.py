@@ -22,9 +22,10 @@ from typing import IO, Any
 import numpy as np
 
 from fgslam.config import Mount, RobotConfig, load_config
-from fgslam.errors import UserError
+from fgslam.errors import ReaderError
 from fgslam.events import Event, OdometryEvent
 from fgslam.frontend.fits import RESIDUAL_TEST
+from fgslam.readers.plausibility import Findings, Rules, check_events
 from fgslam.readers.sanity import INDEX_PERIOD, OdometryLimits, implausible, usage
 
 StrPath = str | PathLike[str]
@@ -47,15 +48,6 @@ VIRTUAL_STEP = 0.05  # m of travel per sample at most
 VIRTUAL_TURN = math.radians(2.0)  # rad of turn per sample at most
 RESIDUAL_LEVEL = RESIDUAL_TEST  # real logs: fit covariances scaled by their residual
 MAX_SAMPLES = 200000  # samples of one increment at most (10 km, 400 turns)
-
-
-class ReaderError(UserError, ValueError):
-    """A foreign log cannot be read; the message is one line naming file (and line)."""
-
-
-class NoUsableClock(ReaderError):
-    """No clock of the log is sound and no fallback was allowed (strict)
-    (:func:`fgslam.readers.sanity.choose_clock`)."""
 
 
 class Problems:
@@ -564,8 +556,6 @@ class Source:
         return dict(self.problems.skipped_by_reason)
 
     def __iter__(self) -> Iterator[Event]:
-        from fgslam.readers.plausibility import Findings, Rules, check_events
-
         rules = Rules.of(
             self.config, getattr(self, "limits", None), getattr(self, "clock", None) != "index"
         )

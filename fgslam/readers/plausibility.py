@@ -44,8 +44,8 @@ from typing import Any
 
 import numpy as np
 
+from fgslam.errors import ReaderError
 from fgslam.events import Event, LaserScan, OdometryEvent, SonarReading, TruthPose
-from fgslam.readers.common import ReaderError
 from fgslam.readers.sanity import OdometryLimits, implausible
 
 MAX_COORD = 1e7  # m: a truth (or pose) coordinate beyond is not a position

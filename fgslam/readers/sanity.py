@@ -45,6 +45,8 @@ from typing import Any
 
 import numpy as np
 
+from fgslam.errors import ReaderError
+
 CLOCKS = ("auto", "ipc", "logger", "index")
 INDEX_PERIOD = 0.2  # s between scans with --timestamps index
 MAX_STAMP = 1e10  # s: a stamp beyond is not a time (CARMEN stamps are UNIX seconds, 2^32 = 4.3e9)
@@ -53,6 +55,11 @@ MAX_BAD_FRACTION = 0.02  # fraction of junk or far-backward stamps tolerated as 
 BACKWARDS_TOLERANCE = 2.0  # s
 WRAP = 2.0**32
 MIN_DT = 0.25  # s of slack in the plausibility test
+
+
+class NoUsableClock(ReaderError):
+    """No clock of the log is sound and no fallback was allowed (strict)
+    (:func:`choose_clock`)."""
 
 
 @dataclass(frozen=True)
@@ -258,10 +265,8 @@ def choose_clock(
     the clocks in the error (default ``"<clock> field"``), ``hint`` the ``--timestamps``
     values it suggests. When ``requested`` is ``auto`` and no clock is sound, ``fallback``
     is used (``index``: the records' order; the record's ``fallback`` says why), or without
-    one :class:`~fgslam.readers.common.NoUsableClock` (a ``ReaderError``) is raised. The
+    one :class:`NoUsableClock` (a ``ReaderError``) is raised. The
     record's ``clock`` names the clock used and why, in words (for report.json)."""
-    from fgslam.readers.common import NoUsableClock, ReaderError
-
     if requested not in choices:
         raise ReaderError(f"unknown --timestamps {requested!r}; expected one of {choices}")
     labels = labels or {}

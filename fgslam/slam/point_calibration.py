@@ -13,16 +13,16 @@ innovations are predictions, not residuals of a smoothed solution: a smoother's 
 residuals are shrunk (most odometry degrees of freedom are constrained by nothing else), so
 their normalised squares say little about the noise.
 
-:func:`self_calibrate` alternates: associate with the current scales (the project's own
-association, :func:`fgslam.slam.pointslam.run_points`, EKF), fit the scales on that
-association, repeat until the scales settle. Nothing of the file's own association is used.
+:func:`fgslam.slam.pointslam.self_calibrate` alternates: associate with the current scales
+(the project's own association, :func:`fgslam.slam.pointslam.run_points`, EKF), fit the
+scales on that association (:func:`fit_scale`), repeat until the scales settle. Nothing of
+the file's own association is used.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -151,50 +151,3 @@ def association_of(assigned: Iterable[tuple[int, int, int]]) -> dict[tuple[int, 
     """(pose index, position in the pose's sightings, landmark id) rows as the mapping
     :func:`sighting_nll` takes."""
     return {(i, q): lid for i, q, lid in assigned}
-
-
-@dataclass
-class Calibration:
-    """The fitted scales (x, y, theta variance factors on the given step covariance) and
-    the history of the alternation: scales used, landmarks found, -2 log L per round."""
-
-    scale: NDArray[np.float64]
-    history: list[dict] = field(default_factory=list)
-
-
-def self_calibrate(
-    data: VictoriaPark,
-    start: Scales = 1.0,
-    per_component: bool = False,
-    rounds: int = 6,
-    tol: float = 0.1,
-    limit: int | None = None,
-    map_params=None,
-) -> Calibration:
-    """Alternate own association (EKF, :func:`fgslam.slam.pointslam.run_points`) and the
-    maximum-likelihood scales on it, from ``start``, until every scale changes by less than
-    a factor ``exp(tol)`` or after ``rounds`` rounds (see module doc)."""
-    from fgslam.slam.pointslam import run_points
-
-    s = np.broadcast_to(np.asarray(start, dtype=float), (3,)).copy()
-    cal = Calibration(s)
-    for _ in range(rounds):
-        r = run_points(data, "ekf", "own", map_params, limit=limit, odometry_scale=s.copy())
-        assoc = association_of(r.sighting_ids)
-        new = fit_scale(data, assoc, per_component, limit)
-        nll, m = sighting_nll(data, assoc, new, limit)
-        cal.history.append(
-            {
-                "scale_used": s.tolist(),
-                "landmarks": len(r.landmarks),
-                "scale_fitted": new.tolist(),
-                "nll": nll,
-                "innovations": m,
-            }
-        )
-        done = bool(np.all(np.abs(np.log(new / s)) < tol))
-        s = new
-        if done:
-            break
-    cal.scale = s
-    return cal

@@ -12,9 +12,9 @@ joint covariance). Both go through :class:`~fgslam.slam.step.SlamStep`, the SLAM
 every run. The keyframe "time" is the pose index.
 
 Odometry noise: the file's step covariances, their variances scaled by ``odometry_scale``;
-``"self"`` scales them by the self-calibration
-(:func:`~fgslam.slam.point_calibration.self_calibrate`: maximum likelihood of the sightings'
-innovations on the own association, alternated with it; nothing of the given association).
+``"self"`` scales them by the self-calibration (:func:`self_calibrate`,
+:mod:`~fgslam.slam.point_calibration`: maximum likelihood of the sightings' innovations on
+the own association, alternated with it; nothing of the given association).
 Not the default: on Victoria Park it measured worse than the hand factor 100
 (experiments/README.md).
 """
@@ -36,7 +36,13 @@ from fgslam.slam.backend import Backend
 from fgslam.slam.ekf import EkfBackend
 from fgslam.slam.graph import BatchSmoother, GraphBackend
 from fgslam.slam.mapping import MapParams
-from fgslam.slam.point_calibration import Scales, scaled_covariance, self_calibrate
+from fgslam.slam.point_calibration import (
+    Scales,
+    association_of,
+    fit_scale,
+    scaled_covariance,
+    sighting_nll,
+)
 from fgslam.slam.step import SlamStep
 
 BACKENDS = ("ekf", "isam2", "batch")
@@ -213,6 +219,51 @@ def run_points(
         sighting_ids=where_of,
         odometry_scale=scale,
     )
+
+
+@dataclass
+class Calibration:
+    """The fitted scales (x, y, theta variance factors on the given step covariance) and
+    the history of the alternation: scales used, landmarks found, -2 log L per round."""
+
+    scale: NDArray[np.float64]
+    history: list[dict] = field(default_factory=list)
+
+
+def self_calibrate(
+    data: VictoriaPark,
+    start: Scales = 1.0,
+    per_component: bool = False,
+    rounds: int = 6,
+    tol: float = 0.1,
+    limit: int | None = None,
+    map_params=None,
+) -> Calibration:
+    """Alternate own association (EKF, :func:`run_points`) and the maximum-likelihood scales
+    on it, from ``start``, until every scale changes by less than a factor ``exp(tol)`` or
+    after ``rounds`` rounds (see :mod:`fgslam.slam.point_calibration`)."""
+    s = np.broadcast_to(np.asarray(start, dtype=float), (3,)).copy()
+    cal = Calibration(s)
+    for _ in range(rounds):
+        r = run_points(data, "ekf", "own", map_params, limit=limit, odometry_scale=s.copy())
+        assoc = association_of(r.sighting_ids)
+        new = fit_scale(data, assoc, per_component, limit)
+        nll, m = sighting_nll(data, assoc, new, limit)
+        cal.history.append(
+            {
+                "scale_used": s.tolist(),
+                "landmarks": len(r.landmarks),
+                "scale_fitted": new.tolist(),
+                "nll": nll,
+                "innovations": m,
+            }
+        )
+        done = bool(np.all(np.abs(np.log(new / s)) < tol))
+        s = new
+        if done:
+            break
+    cal.scale = s
+    return cal
 
 
 def relabelled(data: VictoriaPark, sighting_ids: list[tuple[int, int, int]]) -> VictoriaPark:
