@@ -9,7 +9,7 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from factors.geometry import rot
+from factors.geometry import rot, wrap_angles
 from fgslam.scanmatch.icp import _correspond, _Icp, _icp
 from fgslam.scanmatch.params import MatchParams
 from fgslam.scanmatch.points import _wrap
@@ -63,7 +63,7 @@ def _other_basins(
             alts.append((a, dc, sd))
             # the response's poses in this basin stand for it no more
             dd = resp.poses - seed_poses[k]
-            dd[:, 2] = (dd[:, 2] + math.pi) % (2 * math.pi) - math.pi
+            dd[:, 2] = wrap_angles(dd[:, 2])
             owned |= (np.hypot(dd[:, 0], dd[:, 1]) <= 3 * res) & (np.abs(dd[:, 2]) <= 3 * resp.step)
     return alts, owned
 

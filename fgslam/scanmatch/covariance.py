@@ -53,6 +53,7 @@ def _covariance(
     A = np.eye(3)
     A[:2, :2] = rot(float(pose[2]))
     d = resp.poses - pose
+    # to [-pi, pi), not wrap_angles' (-pi, pi]: the sign of d enters the moment M_ref
     d[:, 2] = (d[:, 2] + math.pi) % (2 * math.pi) - math.pi
     nats = resp.n / kappa * params.response_gain * (score - resp.scores)
     # poses that the local Gaussian (ICP covariance plus the grid's cell and rotation step)

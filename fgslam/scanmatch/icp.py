@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from factors.geometry import rot
+from factors.geometry import rot, wrap_angles
 from fgslam.scanmatch.params import MatchParams
 from fgslam.scanmatch.points import _wrap
 from fgslam.scanmatch.reference import Reference
@@ -100,7 +100,7 @@ def _icp(
             and abs(delta[2]) < 0.1 * join[2]
         ):
             d = join[0] - pose
-            d[:, 2] = (d[:, 2] + math.pi) % (2 * math.pi) - math.pi
+            d[:, 2] = wrap_angles(d[:, 2])
             if ((np.hypot(d[:, 0], d[:, 1]) <= join[1]) & (np.abs(d[:, 2]) <= join[2])).any():
                 return None
         if np.hypot(delta[0], delta[1]) < 3e-4 and abs(delta[2]) < 3e-5:
