@@ -709,6 +709,9 @@ def config_runner(folder: Path, opts: dict) -> Result:
     import tomli_w
 
     from fgslam import config as c
+    from fgslam.slam.keyframes import KeyframeParams
+    from fgslam.slam.loops import LoopParams
+    from fgslam.slam.mapping import MapParams
 
     cfg = c.load_config(folder / "robot.toml")
     data = cfg.to_dict()
@@ -716,9 +719,9 @@ def config_runner(folder: Path, opts: dict) -> Result:
     json.dumps(data, allow_nan=False)
     c.frontend_thresholds(cfg)
     c.match_params(cfg)
-    c.keyframe_params(cfg)
-    c.loop_params(cfg)
-    c.map_params(cfg)
+    KeyframeParams.from_config(cfg)
+    LoopParams.from_config(cfg)
+    MapParams.from_config(cfg)
     cfg.odometry.params()
     cfg.odometry.calibration_prior()
     cfg.laser.calibration_prior()

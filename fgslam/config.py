@@ -382,39 +382,6 @@ def match_params(cfg: RobotConfig) -> Any:
     return MatchParams.for_laser(las.sigma_range, step, las.max_range, **kw)
 
 
-def keyframe_params(cfg: RobotConfig) -> Any:
-    """The keyframe policy of ``cfg``'s ``[scanmatch]`` section."""
-    from fgslam.slam.keyframes import KeyframeParams
-
-    sm = cfg.scanmatch
-    return KeyframeParams(
-        policy=sm.keyframes,
-        odometry=sm.odometry,
-        distance=sm.keyframe_distance,
-        angle=math.radians(sm.keyframe_angle_deg),
-        motion_gate_p=sm.motion_gate_p,
-    )
-
-
-def loop_params(cfg: RobotConfig) -> Any:
-    """The loop-closure search of ``cfg``'s ``[scanmatch]`` section."""
-    from fgslam.slam.loops import LoopParams
-
-    sm = cfg.scanmatch
-    return LoopParams(
-        enabled=sm.loop_closures == "on", radius=sm.loop_radius, min_travel=sm.loop_min_travel
-    )
-
-
-def map_params(cfg: RobotConfig, base: Any = None) -> Any:
-    """``base`` (default: :class:`fgslam.slam.mapping.MapParams`'s defaults) with the
-    sensor-dependent thresholds of ``cfg`` (:func:`frontend_thresholds`)."""
-    from fgslam.slam.mapping import MapParams
-
-    base = MapParams() if base is None else base
-    return dataclasses.replace(base, max_range=frontend_thresholds(cfg)["map_max_range"])
-
-
 # Fields that must be strictly positive; the rest of the numbers must be finite.
 _POSITIVE = {
     "scanmatch.keyframe_distance",

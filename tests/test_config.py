@@ -151,9 +151,8 @@ def test_frontend_thresholds_pls_defaults_exactly_as_before():
     seg = frontend_params(cfg).segment
     assert (seg.min_points, seg.max_range, seg.outlier, seg.spread) == (8, 8.0, 0.07, 0.025)
     assert seg == SegmentParams()
-    from fgslam.config import map_params
-
-    assert map_params(cfg) == MapParams() and map_params(cfg).max_range == 10.0
+    assert MapParams.from_config(cfg) == MapParams()
+    assert MapParams.from_config(cfg).max_range == 10.0
 
 
 def test_frontend_thresholds_derived_from_another_laser(tmp_path):

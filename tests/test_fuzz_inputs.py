@@ -19,6 +19,9 @@ from hypothesis import strategies as st
 
 from fgslam import config as c
 from fgslam.config import ConfigError, load_config
+from fgslam.slam.keyframes import KeyframeParams
+from fgslam.slam.loops import LoopParams
+from fgslam.slam.mapping import MapParams
 
 
 def _derived(cfg: c.RobotConfig) -> None:
@@ -26,9 +29,9 @@ def _derived(cfg: c.RobotConfig) -> None:
     tomli_w.dumps(cfg.to_dict())
     c.frontend_thresholds(cfg)
     c.match_params(cfg)
-    c.keyframe_params(cfg)
-    c.loop_params(cfg)
-    c.map_params(cfg)
+    KeyframeParams.from_config(cfg)
+    LoopParams.from_config(cfg)
+    MapParams.from_config(cfg)
     cfg.odometry.params()
     for section in (cfg.odometry, cfg.laser, cfg.sonar):
         section.calibration_prior()

@@ -28,6 +28,7 @@ from numpy.typing import NDArray
 from factors.geometry import between_poses, compose_poses, transform_points
 from factors.odometry import Preintegrated, relative_pose
 from factors.sensor_models import time_registration_inflation
+from fgslam.config import RobotConfig
 from fgslam.scanmatch import Match, MatchParams, Reference, match
 
 POLICIES = ("motion", "every-scan")
@@ -76,6 +77,18 @@ class KeyframeParams:
             raise ValueError(f"unknown odometry {self.odometry!r}; expected one of {ODOMETRY}")
         if not 0.0 < self.motion_gate_p < 1.0:
             raise ValueError(f"motion_gate_p must lie in (0, 1), got {self.motion_gate_p!r}")
+
+    @classmethod
+    def from_config(cls, cfg: RobotConfig) -> KeyframeParams:
+        """The keyframe policy of ``cfg``'s ``[scanmatch]`` section."""
+        sm = cfg.scanmatch
+        return cls(
+            policy=sm.keyframes,
+            odometry=sm.odometry,
+            distance=sm.keyframe_distance,
+            angle=math.radians(sm.keyframe_angle_deg),
+            motion_gate_p=sm.motion_gate_p,
+        )
 
     @property
     def matching(self) -> bool:

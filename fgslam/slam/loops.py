@@ -53,6 +53,7 @@ from scipy.stats import chi2
 
 from factors.geometry import between_poses, compose_poses, invert_pose, transform_points
 from factors.odometry import relative_pose
+from fgslam.config import RobotConfig
 from fgslam.scanmatch import MatchParams, Reference, match
 from fgslam.slam.keyframes import _key, timing_inflation
 
@@ -96,6 +97,14 @@ class LoopParams:
     confirm_window: int = 10
     pair_xy: float = 0.2
     pair_theta: float = math.radians(2.0)
+
+    @classmethod
+    def from_config(cls, cfg: RobotConfig) -> LoopParams:
+        """The loop-closure search of ``cfg``'s ``[scanmatch]`` section."""
+        sm = cfg.scanmatch
+        return cls(
+            enabled=sm.loop_closures == "on", radius=sm.loop_radius, min_travel=sm.loop_min_travel
+        )
 
 
 @dataclass

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, fields
 
+from fgslam.config import RobotConfig, frontend_thresholds
 from fgslam.slam.association import AssociationParams
 from fgslam.slam.lifecycle import Landmark
 
@@ -47,6 +48,12 @@ class MapParams:
     duplicate_pregate_rad: float = 0.2
     duplicate_retest: int = 10  # a pair that failed the test is tested again after this
     unseen_limit: int = 30  # predicted in view this often in a row, unseen: unreliable
+
+    @classmethod
+    def from_config(cls, cfg: RobotConfig) -> MapParams:
+        """The defaults with the sensor-dependent thresholds of ``cfg``
+        (:func:`fgslam.config.frontend_thresholds`)."""
+        return cls(max_range=frontend_thresholds(cfg)["map_max_range"])
 
     def association_params(self) -> AssociationParams:
         names = {f.name for f in fields(AssociationParams)}

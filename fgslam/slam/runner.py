@@ -30,9 +30,6 @@ from numpy.typing import NDArray
 from factors.geometry import compose_poses
 from factors.odometry import integrate_poses, preintegrate
 from fgslam.config import RobotConfig, match_params
-from fgslam.config import keyframe_params as config_keyframe_params
-from fgslam.config import loop_params as config_loop_params
-from fgslam.config import map_params as config_map_params
 from fgslam.events import Event, OdometryEvent, TruthPose
 from fgslam.frontend.pipeline import FrontEnd
 from fgslam.ordering import REORDER_WINDOW, ReorderBuffer
@@ -246,9 +243,9 @@ class SlamPipeline:
                 raise ValueError(f"unknown association {association!r}; expected one of {METHODS}")
             map_params = replace(map_params or MapParams(), association=association)
         self.sessions: dict[str, _Session] = {}
-        map_params = map_params or config_map_params(cfg)  # sensor-derived thresholds
-        kp = keyframes or config_keyframe_params(cfg)
-        lp = loops or config_loop_params(cfg)
+        map_params = map_params or MapParams.from_config(cfg)  # sensor-derived thresholds
+        kp = keyframes or KeyframeParams.from_config(cfg)
+        lp = loops or LoopParams.from_config(cfg)
         if sensors == "sonar":  # the paper's scheme: no laser to match
             kp = replace(kp, policy="every-scan", odometry="wheels")
             lp = replace(lp, enabled=False)
