@@ -1,12 +1,13 @@
 """SICK PLS (the LMS2xx telegram family) on a serial line: CRC, telegrams, a streaming
 decoder, the B0 measured-values reply, and the driver.
 
-Facts from ``shared/reference/sick-telegram.md``. A telegram is
+Facts gathered from the public open-source drivers of this scanner family (sicktoolbox,
+Player's sicklms200, MRPT's CSickLaserSerial). A telegram is
 ``STX ADDR LEN(u16 LE) CMD DATA... [STATUS] CRC(u16 LE)``; the host sends address 0x00, the
 device answers with 0x80; LEN counts CMD + DATA (+ STATUS), at most 812. Before the reply to a
 request the device sends one ACK (0x06) or NAK (0x15) byte. The line is 8E1 (11 bits a byte).
 
-Time registration (DESIGN 3.4): the host cannot see when the PLS measured a scan, only when
+Time registration (docs/design.md, 3.4): the host cannot see when the PLS measured a scan, only when
 the frame arrived. A frame is stamped with the log time of the read that completed it minus
 the transmission, at the current line rate (``len * 11 / baud``), of the bytes read after it
 in the same chunk and of the frame itself: the time its first byte left the scanner (at the

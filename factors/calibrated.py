@@ -1,6 +1,7 @@
-"""Measurements that move with calibration errors (DESIGN 6): z = h(x) + J c + noise, with c a
-calibration ``Vector`` variable and J the measurement's fixed Jacobian w.r.t. it (e.g. a laser
-line's w.r.t. the range offset and scale, :attr:`fgslam.frontend.features.Feature.Jc`)."""
+"""Measurements that move with calibration errors (docs/design.md, 6): z = h(x) + J c + noise,
+with c a calibration ``Vector`` variable and J the measurement's fixed Jacobian w.r.t. it (e.g.
+a laser line's w.r.t. the range offset and scale, :attr:`fgslam.frontend.features.Feature.Jc`).
+"""
 
 from __future__ import annotations
 

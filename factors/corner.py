@@ -1,4 +1,4 @@
-"""Right-angle corner landmark model (DESIGN 3.3, 3.7).
+"""Right-angle corner landmark model (docs/design.md, 3.3, 3.7).
 
 A corner landmark is a world pose (cx, cy, c_theta): the vertex and the direction of its
 bisector, pointing from the vertex into free space (toward the sensor for a concave corner

@@ -1,4 +1,4 @@
-"""Line landmark model (DESIGN 3.2, 3.7).
+"""Line landmark model (docs/design.md, 3.2, 3.7).
 
 A line is (alpha, d): the points p with p . (cos alpha, sin alpha) = d. A world line
 ``(alpha_w, d_w)`` seen from a sensor at world pose (xs, ys, ths) is predicted in the sensor

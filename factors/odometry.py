@@ -1,4 +1,4 @@
-"""Differential-drive odometry: the paper's eqs 1-5 in REP-103 convention (DESIGN 3.1).
+"""Differential-drive odometry: the paper's eqs 1-5 in REP-103 convention (docs/design.md, 3.1).
 
 Per encoder sample with wheel distances L_r, L_l (m) and wheelbase D (m):
 ``ds = (L_r + L_l)/2``, ``dth = (L_r - L_l)/D``, ``x += ds cos(th + dth/2)``,

@@ -1,4 +1,4 @@
-"""Measurements at their own time (DESIGN 6): a sonar reading taken between (or just after)
+"""Measurements at their own time (docs/design.md, 6): a sonar reading taken between (or just after)
 two keyframes is measured from the pose at its own time, which the graph expresses through
 the two keyframe poses instead of moving the reading with odometry into a scan's frame.
 

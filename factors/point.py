@@ -1,4 +1,4 @@
-"""Point landmark model: range and bearing to a world ``Point2`` (DESIGN 3.5, 3.7).
+"""Point landmark model: range and bearing to a world ``Point2`` (docs/design.md, 3.5, 3.7).
 
 Sonar corners and edges chosen as point features are measured as (phi, r) in the sonar's
 frame. The plain functions give Jacobians w.r.t. the robot's world (x, y, th) and the point's

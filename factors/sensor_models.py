@@ -1,4 +1,4 @@
-"""Measurement covariance models (DESIGN 3.2-3.5): sonar error model, laser range error
+"""Measurement covariance models (docs/design.md, 3.2-3.5): sonar error model, laser range error
 parameters and the laser's time-registration inflation. Units: m, rad, s."""
 
 from __future__ import annotations
@@ -45,7 +45,7 @@ class SonarErrorModel:
 @dataclass(frozen=True)
 class LaserRangeModel:
     """Laser range errors: random sigma (m) and the systematic estimate offset + per_metre*r,
-    which the line and corner fits propagate (DESIGN 3.2)."""
+    which the line and corner fits propagate (docs/design.md, 3.2)."""
 
     sigma_range: float = 0.02
     systematic_offset: float = 0.01
@@ -63,7 +63,7 @@ def time_registration_inflation(
     turn_rate: float,
     sigma_t: float,
 ) -> NDArray[np.float64]:
-    """DESIGN 3.4: add (v sigma_t)^2 to the positional and (omega sigma_t)^2 to the angular
+    """docs/design.md, 3.4: add (v sigma_t)^2 to the positional and (omega sigma_t)^2 to the angular
     diagonal terms of a laser feature's covariance; v in m/s, omega in rad/s, sigma_t in s."""
     C = np.array(covariance, dtype=float)
     if C.shape != (len(angular), len(angular)):

@@ -116,7 +116,7 @@ class OdometryConfig:
 
 @dataclass(frozen=True)
 class LaserConfig:
-    """SICK PLS geometry and error model (DESIGN 3.2-3.4)."""
+    """SICK PLS geometry and error model (docs/design.md, 3.2-3.4)."""
 
     mount: Mount
     n_beams: int
@@ -172,7 +172,7 @@ class SonarArrayConfig:
 
 @dataclass(frozen=True)
 class SonarConfig:
-    """Advanced sonar error model (paper II-B, DESIGN 3.5) and the arrays."""
+    """Advanced sonar error model (paper II-B, docs/design.md, 3.5) and the arrays."""
 
     sigma_bearing_deg: float
     sigma_sound_rel: float
@@ -185,8 +185,8 @@ class SonarConfig:
     arrays: tuple[SonarArrayConfig, ...]
     # where the graph backends attach a sonar point or plane feature: "scan-frame" (the
     # paper: the reading moved by odometry into the laser scan's frame) or "own-time" (the
-    # pose at the reading's own time, interpolated between the keyframes around it; DESIGN
-    # 6). The EKF keeps no past poses and always uses the scan frame.
+    # pose at the reading's own time, interpolated between the keyframes around it;
+    # docs/design.md, 6). The EKF keeps no past poses and always uses the scan frame.
     timing: str = "scan-frame"
     # "sound" estimates the relative error of the assumed speed of sound (every echo's range
     # reads r (1 + sound); one graph variable with the others, an EKF state) with the prior
@@ -259,7 +259,7 @@ class FrontendConfig:
 
 @dataclass(frozen=True)
 class ScanMatchConfig:
-    """Laser scan matching, keyframes and loop closures (DESIGN 5b; beyond the paper, which
+    """Laser scan matching, keyframes and loop closures (docs/design.md, 5b; beyond the paper, which
     links every scan to the next by wheel odometry alone).
 
     - ``odometry``: what links consecutive keyframes: ``wheels`` (the paper), ``scan`` (the

@@ -1,7 +1,7 @@
 """Devices as event sources: the drivers on serial ports yield fgslam events, the emulators
 are fed by the simulator, and raw recordings replay into the native log.
 
-``devices`` never imports ``fgslam`` (DESIGN 1); this module is the bridge:
+``devices`` never imports ``fgslam`` (docs/design.md, 1); this module is the bridge:
 
 - :class:`DevicePorts` runs the SICK PLS, sonar array and odometry board drivers in one
   thread each (reopening a device that disconnects while the others go on), optionally

@@ -21,7 +21,7 @@ def test_ruff(args):
 
 
 def test_layering():
-    """factors/ and devices/ never import fgslam (DESIGN 1)."""
+    """factors/ and devices/ never import fgslam (docs/design.md, 1)."""
     for pkg in ("factors", "devices"):
         for path in (ROOT / pkg).rglob("*.py"):
             text = path.read_text()

@@ -43,7 +43,7 @@ SOURCES = ("laser_offset", "laser_scale", "sound")
 class OwnTime:
     """A sonar feature's measurement from the robot at the reading's own time ``t`` (s):
     ``z`` and ``cov`` like :attr:`Feature.z`, in the robot frame then, not moved by odometry
-    into the scan's frame (DESIGN 6; used by the graph backends with ``[sonar] timing =
+    into the scan's frame (docs/design.md, 6; used by the graph backends with ``[sonar] timing =
     "own-time"``)."""
 
     t: float

@@ -1,4 +1,5 @@
-"""Polar line and right-angle corner fits to laser ranges, with covariances (DESIGN 3.2-3.3).
+"""Polar line and right-angle corner fits to laser ranges, with covariances
+(docs/design.md, 3.2-3.3).
 
 Both minimise the sum of squared *range* residuals over the beams (bearings phi_i, rad, in the
 laser frame; ranges r_i, m) by Gauss-Newton, and give the covariance sigma_r^2 (H^T H)^-1

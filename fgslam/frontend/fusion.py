@@ -1,4 +1,4 @@
-"""Laser-sonar fusion in information form (paper III-B, DESIGN 3.6).
+"""Laser-sonar fusion in information form (paper III-B, docs/design.md, 3.6).
 
 C_f = (C_l^-1 + C_s^-1)^-1, z_f = C_f (C_l^-1 z_l + C_s^-1 z_s), written as the equivalent
 Kalman update so that the sonar may measure only the leading components (corners: range and

@@ -163,7 +163,7 @@ class FrontEnd:
             self.poses.add(ev.t, self.odo.pose)
         elif isinstance(ev, LaserScan):
             self._saw_laser = True
-            # time registration (DESIGN 3.4): the host stamp is late by the transmission
+            # time registration (docs/design.md, 3.4): the host stamp is late by the transmission
             # delay; take off its known mean, the spread is covered by the inflation
             ev = dataclasses.replace(ev, t=ev.t - self.mean_delay)
             if self.poses.last_time == -math.inf:

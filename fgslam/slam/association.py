@@ -1,4 +1,4 @@
-"""Data association (DESIGN 5): pure functions, the backend's estimate in, decisions out.
+"""Data association (docs/design.md, 5): pure functions, the backend's estimate in, decisions out.
 
 Two strategies over the features of one scan, seen from the predicted pose (world x, y, theta):
 

@@ -1,5 +1,5 @@
-"""The calibration errors estimated with the map (DESIGN 6): one vector c, the graph's variable
-``C`` and the EKF's states 3:3+dim, holding the wheels' relative errors (e_r, e_l, e_b),
+"""The calibration errors estimated with the map (docs/design.md, 6): one vector c, the graph's
+variable ``C`` and the EKF's states 3:3+dim, holding the wheels' relative errors (e_r, e_l, e_b),
 the laser's range errors (offset in m, scale in m per m: a range reads r (1 + scale) +
 offset) and the sonar's relative speed-of-sound error (``sound``: an echo's range reads
 r (1 + sound)), each part when estimated. Odometry moves with the wheel part through the

@@ -1,4 +1,4 @@
-"""Segment geometry of the map (DESIGN 5): line segment ends and corner arms, kept in WORLD
+"""Segment geometry of the map (docs/design.md, 5): line segment ends and corner arms, kept in WORLD
 coordinates (m), outside the estimator's state.
 
 A line's (alpha, d) may be stored in either parametrisation ((alpha, d) or (alpha + pi, -d),

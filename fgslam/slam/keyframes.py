@@ -1,4 +1,4 @@
-"""Scan odometry and the keyframe policy (DESIGN 5b; beyond the paper).
+"""Scan odometry and the keyframe policy (docs/design.md, 5b; beyond the paper).
 
 Every laser scan is matched (:mod:`fgslam.scanmatch`) against the last keyframe's scan (or a
 local map of the last ``local_map`` keyframes' scans in its frame), the match started from the
@@ -117,7 +117,7 @@ def timing_inflation(
     sigma_time: float,
 ) -> NDArray[np.float64]:
     """A scan match's covariance (x, y, theta) with the time registration of both scans
-    (DESIGN 3.4): (v sigma_t)^2 and (omega sigma_t)^2 of each, (v, omega) in m/s, rad/s."""
+    (docs/design.md, 3.4): (v sigma_t)^2 and (omega sigma_t)^2 of each, (v, omega) in m/s, rad/s."""
     (v0, w0), (v1, w1) = speed_a, speed_b
     return time_registration_inflation(
         cov, (False, False, True), math.hypot(v0, v1), math.hypot(w0, w1), sigma_time
@@ -143,7 +143,7 @@ class ScanOdometry:
     ) -> None:
         """``origin``: the laser's position on the robot (m, robot frame), whence the
         scans' points were seen; ``sigma_time`` (s): the uncertainty of a scan's time
-        (DESIGN 3.4), which inflates a keyframe-to-keyframe match by the robot's motion at
+        (docs/design.md, 3.4), which inflates a keyframe-to-keyframe match by the robot's motion at
         both scans."""
         self.p = params
         # ambiguous matches are rejected here too: kept with their covariance (the wheels to

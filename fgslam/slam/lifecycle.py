@@ -1,4 +1,4 @@
-"""Landmark lifecycle (DESIGN 5): ids, tentative -> confirmed, merges, unreliable marks.
+"""Landmark lifecycle (docs/design.md, 5): ids, tentative -> confirmed, merges, unreliable marks.
 
 - A feature that matches no landmark starts a *tentative* landmark, kept here (world mean and
   covariance, fused from its sightings; not in the estimator). Tentatives are association

@@ -1,4 +1,4 @@
-"""Loop closures by scan matching (DESIGN 5b; beyond the paper).
+"""Loop closures by scan matching (docs/design.md, 5b; beyond the paper).
 
 At a keyframe, old keyframes whose estimated position lies within ``radius`` of the current
 one and that are at least ``min_travel`` of path behind are candidates (nearest first, at

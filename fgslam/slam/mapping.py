@@ -1,4 +1,4 @@
-"""Map management parameters (paper IV, DESIGN 5), shared by every backend.
+"""Map management parameters (paper IV, docs/design.md, 5), shared by every backend.
 
 The work is split by responsibility: :mod:`fgslam.slam.association` (pure: estimate in,
 decisions out), :mod:`fgslam.slam.lifecycle` (ids, tentative/confirmed, merges, unreliable
