@@ -329,7 +329,7 @@ def test_a_few_percent_of_one_stream_lost_is_a_warning():
     from collections import Counter
     from types import SimpleNamespace
 
-    from fgslam.cli import _input_notes
+    from fgslam.cli.run import _input_notes
 
     reader = SimpleNamespace(
         problems=[],

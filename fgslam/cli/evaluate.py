@@ -257,3 +257,48 @@ def evaluate_command(args: argparse.Namespace) -> dict[str, Any]:
         lines.append(_relations_text(rel_rep))
     rep["_text"] = "\n".join(lines)
     return rep
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "evaluate",
+        help="trajectory (and map) error against a reference: ATE, RPE, NEES, map error",
+        description=(
+            "Compare a TUM trajectory (e.g. a run's trajectory.tum) with a reference: a TUM "
+            "file, or a log with truth or reference poses (fgslam, CARMEN corrected). Poses "
+            "are matched by time (the reference interpolated). Prints and writes ATE after "
+            "SE(2) alignment (RMSE, mean, max), RPE over --rpe-delta metres of travel, NEES "
+            "with --covariances, map error with --map against a simulator log's true map."
+        ),
+    )
+    p.add_argument("trajectory", metavar="TRAJ", help="estimated trajectory (TUM) or run dir")
+    p.add_argument("--reference", metavar="REF", help="TUM file or log")
+    p.add_argument(
+        "--relations",
+        metavar="FILE",
+        help="relations benchmark file (t1 t2 x y z roll pitch yaw per line): errors of the "
+        "estimate's relative poses; a run dir's trajectory_dense.tum is used when present",
+    )
+    p.add_argument(
+        "--odometry-log",
+        metavar="LOG",
+        help="with --relations: the CARMEN log the run read; relation ends are filled from "
+        "the keyframes and the log's odometry records (the benchmark's method)",
+    )
+    p.add_argument("--rpe-delta", type=float, default=1.0, metavar="METRES", help="default 1")
+    p.add_argument("--covariances", metavar="FILE", help="pose covariances (for the NEES)")
+    p.add_argument("--map", metavar="MAP.json", help="estimated map (for the map error)")
+    p.add_argument("--max-gap", type=float, metavar="S", help="ignore poses this far from REF")
+    p.add_argument("--out", metavar="report.json", help="write the report as JSON")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    rep = evaluate_command(args)
+    print(rep.pop("_text"))
+    if args.out:
+        from fgslam.safeio import write_json
+
+        write_json(args.out, rep)
+        print(f"wrote {args.out}")
+    return 0

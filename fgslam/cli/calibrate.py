@@ -1,0 +1,12 @@
+"""``fgslam calibrate``: its parser and command are :func:`fgslam.calibrate.add_parser` and
+:func:`fgslam.calibrate.calibrate_command`."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    from fgslam.calibrate import add_parser
+
+    add_parser(sub)

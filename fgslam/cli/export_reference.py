@@ -1,0 +1,55 @@
+"""``fgslam export-reference``: a log's truth or reference poses as a TUM trajectory."""
+
+from __future__ import annotations
+
+import argparse
+
+from fgslam.cli.common import add_reader_arguments, reader_options
+from fgslam.errors import UserError
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "export-reference",
+        help="write a log's truth or reference poses as a TUM trajectory (for evo)",
+        description=(
+            "Write the ground truth of a simulated log, or the reference poses of a corrected "
+            "CARMEN log, as a TUM trajectory (timestamp x y z qx qy qz qw), e.g. for evo: "
+            "`evo_ape tum ref.tum out/trajectory.tum`."
+        ),
+    )
+    p.add_argument("log", help="log: fgslam, CARMEN (.gz or not) or a ROS 1/2 bag")
+    add_reader_arguments(p)
+    p.add_argument(
+        "--tolerant", action="store_true", help="skip malformed records instead of stopping"
+    )
+    p.add_argument("--out", required=True, metavar="FILE.tum", help="TUM file to write")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from fgslam.evaluation import write_tum
+    from fgslam.events import TruthPose
+    from fgslam.readers import open_log
+    from fgslam.safeio import atomic_path
+
+    reader = open_log(args.log, **reader_options(args))
+    t: list[float] = []
+    poses: list[tuple[float, float, float]] = []
+    backwards = 0
+    for ev in reader:
+        if isinstance(ev, TruthPose):
+            if t and ev.t < t[-1]:
+                backwards += 1
+                continue
+            t.append(ev.t)
+            poses.append((ev.x, ev.y, ev.theta))
+    if not t:
+        raise UserError(f"{args.log}: the log has no truth or reference poses")
+    kind = getattr(reader, "reference_kind", None) or "ground truth"
+    with atomic_path(args.out) as tmp:
+        write_tum(tmp, t, poses)
+    print(f"wrote {args.out}: {len(t)} poses ({kind}) over {t[-1] - t[0]:.1f} s")
+    if backwards:
+        print(f"left out {backwards} poses stamped earlier than the one before them")
+    return 0

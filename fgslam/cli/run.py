@@ -1,0 +1,258 @@
+"""``fgslam run``: SLAM on a log (EKF, iSAM2 or batch; fused, laser or sonar), and the account
+of what happened to the log's records."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections import Counter
+from pathlib import Path
+
+from fgslam.cli.common import (
+    CONFIG_OVER_LOG_HELP,
+    add_association_argument,
+    add_reader_arguments,
+    config_options,
+    print_summary,
+    progress_bar,
+    reader_options,
+    reader_warnings,
+)
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "run",
+        help="run SLAM on a log (EKF, iSAM2 or batch; fused, laser or sonar)",
+        description=(
+            "Run the front end (line, corner and point features, sonar-aided segmentation and "
+            "fusion) and one SLAM backend over a log, and write trajectory.tum (TUM format), "
+            "map.json, report.json (accuracy against the truth when the log has it, timing) "
+            "and map.png into --out."
+        ),
+    )
+    p.add_argument("log", help="log: fgslam, CARMEN (.gz or not) or a ROS 1/2 bag")
+    add_reader_arguments(p)
+    p.add_argument(
+        "--backend",
+        choices=["ekf", "isam2", "batch"],
+        default="isam2",
+        help="the paper's EKF, incremental smoothing, or batch LM smoothing (default isam2)",
+    )
+    p.add_argument(
+        "--sensors",
+        choices=["fused", "laser", "sonar"],
+        default="fused",
+        help="laser and sonar fused (the paper), laser only, or sonar only (default fused)",
+    )
+    add_association_argument(p)
+    p.add_argument("--config", metavar="ROBOT.toml", help=CONFIG_OVER_LOG_HELP)
+    p.add_argument(
+        "--tolerant", action="store_true", help="skip malformed records instead of stopping"
+    )
+    p.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from fgslam.config import with_options
+    from fgslam.readers import open_log
+    from fgslam.slam.outputs import write_outputs
+    from fgslam.slam.runner import run_slam
+
+    reader = open_log(args.log, **reader_options(args))
+    cfg = with_options(_run_config(reader, args.config, args.log), config_options(args))
+    d = reader.meta.get("duration")
+    total = float(d) if isinstance(d, int | float) else None
+    bar = progress_bar(f"{args.backend}/{args.sensors}")
+    t_first: list[float] = []
+
+    def progress(t: float) -> None:
+        if not t_first:
+            t_first.append(t)
+        if total:
+            bar(min(t - t_first[0], total), total)
+
+    tap = _Tap(reader)
+    try:
+        res = run_slam(tap, cfg, args.backend, args.sensors, progress, association=args.association)
+    finally:
+        bar.close()
+    extra, notes = _input_notes(reader, tap, [res])
+    extra["config_source"] = cfg.source
+    from fgslam.dense import write_dense_trajectory
+
+    def dense(path: Path) -> int:
+        return write_dense_trajectory(
+            path, *res.every_scan, res.odometry_samples, cfg.odometry.wheelbase
+        )
+
+    rep = write_outputs(
+        res,
+        args.out,
+        reader.meta.get("true_map"),
+        extra=extra,
+        world=_log_world(reader),
+        scans=tap.sample.scans,
+        cfg=cfg,
+        more={"trajectory_dense.tum": dense},
+    )
+    for line in notes:
+        print(line)
+    print_summary(rep, args.out)
+    return _report_partial(rep, args.out)
+
+
+class _Tap:
+    """Passes a reader's events on, counting them and keeping a thinned sample of the laser
+    scans for map.png."""
+
+    def __init__(self, reader) -> None:
+        from fgslam.slam.outputs import ScanSample
+
+        self.reader = reader
+        self.events = 0
+        self.by_type: Counter = Counter()
+        self.sample = ScanSample()
+
+    def __iter__(self):
+        add = self.sample.add
+        count = self.by_type
+        for ev in self.reader:
+            self.events += 1
+            count[type(ev).__name__] += 1
+            add(ev)
+            yield ev
+
+
+def _run_config(reader, config: str | None, log: str):
+    """The log's configuration (or the built-in one for logs without) with the keys of
+    ``--config`` overriding it; refused where it contradicts the log."""
+    from fgslam.config import check_against_log, override_config
+
+    cfg = override_config(reader.config, config)
+    check_against_log(cfg, reader.config, str(log))
+    return cfg
+
+
+def _log_world(reader):
+    """The simulator's world of a native log whose world is built in, else None."""
+    from fgslam.sim.world import BUILTIN_WORLDS, load_world
+
+    name = getattr(reader, "world", None)
+    return load_world(name) if name in BUILTIN_WORLDS else None
+
+
+WARN_FRACTION = 0.01  # records not used (skipped, dropped) beyond this fraction: a warning
+_STREAM_TYPES = {
+    "odometry": "OdometryEvent",
+    "laser": "LaserScan",
+    "sonar": "SonarReading",
+    "truth": "TruthPose",
+}
+
+
+def _input_notes(reader, tap: _Tap, results: list) -> tuple[dict, list[str]]:
+    """What happened to the input's records (report.json keys, console lines): read, skipped
+    as bad, stamped earlier than the record before them, put back in order or dropped as too
+    late by the pipeline; a warning when more than WARN_FRACTION of them were not used. Where
+    the comparison trajectory is a reference rather than ground truth, that too."""
+    problems = getattr(reader, "problems", None)
+    if problems is not None and not isinstance(problems, list):
+        summary = problems.summary()
+    elif hasattr(reader, "summary"):
+        summary = reader.summary()
+    else:
+        summary = {}
+    stats = results[0].stats if results else {}
+    dropped = int(stats.get("events_out_of_order", 0))
+    reordered = int(stats.get("events_reordered", 0))
+    by_reason = dict(summary.get("skipped_by_reason", {}))
+    # records of types a foreign reader does not use (CARMEN NEFF, ...) are not data lost
+    foreign = problems is not None and not isinstance(problems, list)
+    ignored = {k: n for k, n in by_reason.items() if foreign and k.startswith("unknown record")}
+    skipped = int(summary.get("skipped", 0)) - sum(ignored.values())
+    back = summary.get("timestamps_backwards", {})
+    total = tap.events + skipped
+    info = {
+        "records": total,
+        "events_read": tap.events,
+        "skipped": skipped,
+        "skipped_by_reason": {k: n for k, n in by_reason.items() if k not in ignored},
+        "ignored_record_types": ignored,
+        "timestamps_backwards": back,
+        "events_put_back_in_order": reordered,
+        "events_dropped_out_of_order": dropped,
+    }
+    if summary.get("problems"):
+        info["problems"] = summary["problems"]
+    notes = []
+    if skipped:
+        notes.append(f"skipped {skipped} bad records: {info['skipped_by_reason']}")
+    if ignored:
+        notes.append(f"ignored records of types not used: {ignored}")
+    if back or dropped or reordered:
+        by = ", ".join(f"{n} {k}" for k, n in sorted(back.items())) or "none"
+        notes.append(
+            f"timestamps going backwards: {by}; the pipeline put {reordered} events back in "
+            f"order and dropped {dropped} (more than its reorder window late)"
+        )
+    lost = skipped + dropped
+    if total and lost > WARN_FRACTION * total:
+        msg = (
+            f"{lost} of {total} records ({100 * lost / total:.1f} %) were not used "
+            f"({skipped} bad, {dropped} out of time order): the results cover only part "
+            "of the log"
+        )
+        info["warning"] = msg
+        notes.append(f"WARNING: {msg}")
+    elif not foreign:  # a few lost records of one kind (odometry) can matter more than
+        # their number says; foreign readers carry or drop such records themselves and say so
+        for stream, n in sorted(back.items()):
+            of = tap.by_type.get(_STREAM_TYPES.get(stream, ""), 0)
+            if of and n > WARN_FRACTION * of:
+                msg = (
+                    f"{n} of {of} {stream} records ({100 * n / of:.1f} %) are stamped earlier "
+                    "than the one before them: the results may be wrong"
+                )
+                info["warning"] = msg
+                notes.append(f"WARNING: {msg}")
+                break
+    extra: dict = {"input": info}
+    kind = getattr(reader, "reference_kind", None)
+    if kind:
+        extra["truth_source"] = kind
+        if kind == "reference":
+            notes.append("note: ATE is against the log's reference trajectory, not ground truth")
+    if problems is not None and not isinstance(problems, list):
+        extra["reader"] = summary  # a foreign reader's own account
+        notes += [f"warning: {w}" for w in summary.get("warnings", [])]
+    elif "timestamps" in summary or "plausibility" in summary:  # a native log's checks
+        keys = ("timestamps", "plausibility", "warnings")  # (docs/readers.md)
+        extra["reader"] = {k: summary[k] for k in keys if k in summary}
+        notes += [f"warning: {w}" for w in reader_warnings(summary)]
+    return extra, notes
+
+
+def _report_partial(rep: dict, out: str) -> int:
+    """Exit status of a run: 1 when its backend failed mid-run (outputs written up to the
+    last good keyframe) or an output could not be written (``output_errors``; each was
+    warned about), with a message saying so; 0 otherwise."""
+    failed = [e["output"] for e in rep.get("output_errors", [])]
+    if failed:
+        print(
+            f"fgslam: error: not written: {', '.join(failed)} (the other outputs in {out} are)",
+            file=sys.stderr,
+        )
+    part = rep.get("partial")
+    if not part:
+        return 1 if failed else 0
+    t = part.get("t")
+    when = f" (t = {t:.2f} s)" if isinstance(t, int | float) else ""
+    print(
+        f"fgslam: error: {rep['backend']} failed at keyframe {part.get('keyframe')}{when}: "
+        f"{part.get('error')}; the outputs in {out} hold the run up to the last good "
+        "keyframe (report.json: partial)",
+        file=sys.stderr,
+    )
+    return 1
