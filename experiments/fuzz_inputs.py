@@ -39,12 +39,12 @@ error for bad input, a ``fgslam.errors.UserError``: exit status 2 with one error
 project's own (``OutputWarning``, ``RunWarning``), e.g. numpy's RuntimeWarnings. Prints one
 markdown table, then each kind of escape, hang and raw warning with a count and one example
 (exception, file:line, the mutation). The first examples of each kind are saved under
-``--save`` (default /work/tmp/fuzz_escapes); ``--reproduce DIR`` runs a saved input again
-without catching anything.
+``--save`` (default ``fgslam_fuzz_escapes`` in the system's temporary folder);
+``--reproduce DIR`` runs a saved input again without catching anything.
 
 Run: python experiments/fuzz_inputs.py [--seed 0] [--scale 1] [--paths carmen,native,...]
        [--timeout 20] [--save DIR]
-     python experiments/fuzz_inputs.py --reproduce /work/tmp/fuzz_escapes/<case>
+     python experiments/fuzz_inputs.py --reproduce <save dir>/<case>
 """
 
 from __future__ import annotations
@@ -79,7 +79,7 @@ import numpy as np
 from fgslam.errors import OutputWarning, RunWarning, UserError
 
 ROOT = Path(__file__).resolve().parents[1]
-SAVE_DIR = Path("/work/tmp/fuzz_escapes")
+SAVE_DIR = Path(tempfile.gettempdir()) / "fgslam_fuzz_escapes"
 EXAMPLES_SAVED = 2  # inputs saved per kind of escape, hang or warning
 
 # path -> inputs at --scale 1 (total 100 000)

@@ -37,7 +37,7 @@ FILES = {
     "freiburg-079": ("freiburg-079-corrected.log.gz", "freiburg-079-corrected.relations"),
     "mit-csail": ("mit-csail.clf", "mit-csail.relations"),
 }
-# published translational errors, m (shared/data/README.md)
+# published translational errors, m (Kümmerle et al. 2009; Cartographer: Hess et al. 2016)
 PUBLISHED = {
     "intel": "graph 0.031, Cartographer 0.023, GMapping 0.070, scan matching 0.220",
     "freiburg-079": "graph 0.056, Cartographer 0.045, GMapping 0.061, scan matching 0.258",

@@ -6,7 +6,7 @@ asked for (what the benchmark's own evaluator does): ``X(t) = X_k * inverse(O(t_
 ``k`` the keyframe nearest in time to ``t``, ``O`` the odometry path (cumulative, from the
 samples, linearly interpolated between them: samples are at most 5 cm / 2 deg apart in the
 foreign-log readers). Linear interpolation between keyframes instead would inflate the
-benchmark's error (intel 0.126 m instead of 0.054 m for the same poses, ../shared/data/README).
+benchmark's error (intel 0.126 m instead of 0.054 m for the same poses).
 
 World frame, poses (x, y, theta) in m and rad, times in s.
 """

@@ -91,7 +91,7 @@ def test_dense_file_and_evaluate_relations(tmp_path, capsys):
 @pytest.mark.skipif(not (FREIBURG.with_suffix(".log.gz")).exists(), reason="no shared data")
 def test_known_figures_of_the_corrected_poses():
     """The corrected (GMapping) poses with the logs' odometry records score the check
-    figures of ../shared/data/README.md: intel 0.054 m and freiburg-079 0.058 m (+-0.005);
+    figures that come with the benchmark data: intel 0.054 m and freiburg-079 0.058 m (+-0.005);
     the odometry alone 7.4 and 6.5 m."""
     from fgslam.dense import relations_error_chain
     from fgslam.readers.carmen import odometry_chain

@@ -22,7 +22,7 @@ from devices.sick import (
 
 PROPS = settings(deadline=None, max_examples=150, suppress_health_check=[HealthCheck.too_slow])
 
-# shared/reference/sick-telegram.md
+# gathered from the public open-source drivers of the LMS2xx/PLS family
 VECTORS = {
     "request one scan": ("02 00 02 00 30 01 31 18", 0x00, "30 01"),
     "start streaming": ("02 00 02 00 20 24 34 08", 0x00, "20 24"),

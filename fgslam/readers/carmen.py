@@ -12,7 +12,7 @@ Records (whitespace separated; ``#`` lines are comments)::
 
 Two kinds of log (``mode``, detected by default):
 
-- **corrected** (written by a SLAM run, e.g. GMapping's, as in ``../shared/data``): both
+- **corrected** (written by a SLAM run, e.g. GMapping's, like the public Intel log): both
   FLASER pose fields hold the corrected pose P_k, the ``ODOM`` lines between scans hold
   P_{k-1} composed with the raw odometry since scan k-1, and an ``ODOM`` line stamped 0 after
   each scan repeats P_k. The raw odometry increment between scans k-1 and k is therefore
