@@ -311,10 +311,6 @@ class DeviceRunner:
         if self._thread.is_alive():
             self._thread.join(timeout)
 
-    @property
-    def running(self) -> bool:
-        return self._thread.is_alive()
-
     def _run(self) -> None:
         dev = self.device
         try:

@@ -253,7 +253,3 @@ class FramedDevice(SerialDevice):
             raise
         self.link.opens += 1
         self.data_arrived()
-
-    def stop_stream(self) -> None:
-        """Ask the device to stop sending data (STOP)."""
-        self.command(CMD_STOP)

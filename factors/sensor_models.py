@@ -13,7 +13,6 @@ from numpy.typing import ArrayLike, NDArray
 # Which components of each measurement vector are angles (True) or lengths (False).
 LINE_ANGULAR = (True, False)  # (alpha, d)
 CORNER_ANGULAR = (True, False, True)  # (phi_c, r_c, gamma)
-POINT_ANGULAR = (True, False)  # (phi, r)
 
 
 @dataclass(frozen=True)

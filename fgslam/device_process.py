@@ -377,10 +377,6 @@ class DeviceProcess:
         """Fatal errors of the device process (bugs), if any."""
         return [RuntimeError(e) for e in self._errors]
 
-    @property
-    def alive(self) -> bool:
-        return self._proc is not None and self._proc.poll() is None
-
 
 def raise_priority(nice: int = DEVICE_NICE) -> int:
     """Lower this process's nice value to ``nice`` where allowed (root, or CAP_SYS_NICE), as

@@ -298,10 +298,6 @@ class DevicePorts:
             return time.monotonic() - runner.down_since
         return self.devices[name].seconds_since_data()
 
-    def backlog(self) -> int:
-        """Events delivered by the drivers and not yet taken with :meth:`get`."""
-        return self._queue.qsize()
-
     def status(self) -> dict[str, dict[str, Any]]:
         """Per device: connected, counters (opens, disconnects, timeouts, naks, retries,
         bytes_in, frames, crc_errors, discarded, dropped_frames, ...), received and rejected

@@ -234,14 +234,6 @@ FIG4 = {
 }
 
 
-def _lines_over(features, x0, x1):
-    return [
-        f
-        for f in features
-        if f.kind == "line" and f.endpoints[:, 0].min() < x0 and f.endpoints[:, 0].max() > x1
-    ]
-
-
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_fig4_door_segmented_only_with_sonar(seed):
     pose = (0.0, 0.0, math.pi / 2)  # facing the wall; robot frame x = world y

@@ -109,7 +109,6 @@ VALUES = (
 )  # fmt: skip
 _KEY_LINE = re.compile(r"^([A-Za-z_]\w*)(\s*=\s*)(.*)$")
 DEFAULT_LINES = c.default_config_text().splitlines()
-KEYED = [i for i, ln in enumerate(DEFAULT_LINES) if _KEY_LINE.match(ln)]
 SCHEMA: list[tuple[str, str]] = []
 _section = ""
 for _ln in DEFAULT_LINES:

@@ -28,11 +28,6 @@ class End(StrEnum):
         """The object really ends here (the map moves its endpoint a big step)."""
         return self in (End.SONAR, End.DISCONTINUITY)
 
-    @property
-    def informative(self) -> bool:
-        """The end says something about the object's extent (not the field of view)."""
-        return self is not End.FIELD_OF_VIEW
-
 
 # the range error sources a feature's Jc is taken against, in its column order: a laser range
 # reads r (1 + laser_scale) + laser_offset, a sonar range r (1 + sound)

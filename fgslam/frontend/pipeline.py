@@ -59,7 +59,6 @@ from fgslam.scanmatch import scan_points
 
 MODES = ("fused", "laser", "sonar")
 CHI2_2_99 = 9.21
-CHI2_3_99 = 11.34
 
 
 @dataclass(frozen=True)
@@ -143,7 +142,6 @@ class FrontEnd:
         self.mount = (m.x, m.y, math.radians(m.yaw_deg))
         self.half_slot = 0.5 * cfg.laser.scan_period
         self.mean_delay = 0.5 * (cfg.laser.delay_min + cfg.laser.delay_max)
-        self._last_scan_t = -math.inf
         self._next_sonar_step: float | None = None
         self._saw_laser = False
         self.now = -math.inf

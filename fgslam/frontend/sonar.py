@@ -242,10 +242,6 @@ class Cluster:
     def has_corner_or_edge(self) -> bool:
         return bool(self.counts[1] + self.counts[2] > 0)
 
-    @property
-    def dominant(self) -> int:
-        return int(np.argmax(self.counts))
-
 
 def _components(n: int, pairs: NDArray[np.intp]) -> NDArray[np.intp]:
     """Connected components of n nodes linked by ``pairs`` (K, 2): each node's label is the

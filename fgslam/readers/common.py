@@ -104,23 +104,6 @@ class Problems:
         return out
 
 
-class TimeCheck:
-    """Counts timestamps going backwards per stream (record type), never reorders."""
-
-    def __init__(self, problems: Problems) -> None:
-        self.last: dict[str, float] = {}
-        self.problems = problems
-
-    def __call__(self, stream: str, t: float) -> bool:
-        """True if ``t`` is not earlier than the last stamp of ``stream``."""
-        last = self.last.get(stream, -math.inf)
-        if t < last:
-            self.problems.backwards[stream] += 1
-            return False
-        self.last[stream] = t
-        return True
-
-
 def open_lines(path: StrPath) -> Iterator[tuple[int, str]]:
     """(line number, text without EOL) of a text file, gzip detected by its magic bytes.
     Corrupt or truncated gzip data and undecodable bytes raise :class:`ReaderError`."""
@@ -147,11 +130,6 @@ def open_lines(path: StrPath) -> Iterator[tuple[int, str]]:
     finally:
         f.close()
         raw.close()
-
-
-def is_gzip(path: StrPath) -> bool:
-    with open(path, "rb") as f:
-        return f.read(2) == b"\x1f\x8b"
 
 
 def head_text(path: StrPath, nbytes: int = 4096) -> str:

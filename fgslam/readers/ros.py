@@ -92,13 +92,13 @@ UPRIGHT = math.cos(math.radians(10.0))  # a laser tilted more is not a 2-D mount
 
 def _import():
     try:
-        from rosbags.highlevel import AnyReader, AnyReaderError
+        from rosbags.highlevel import AnyReader
         from rosbags.typesys import Stores, get_typestore
     except ImportError:  # pragma: no cover - depends on the installation
         raise ReaderError(
             "reading ROS bags needs the 'rosbags' package: pip install 'fgslam[ros]'"
         ) from None
-    return AnyReader, AnyReaderError, Stores, get_typestore
+    return AnyReader, Stores, get_typestore
 
 
 def is_bag(path: StrPath) -> bool:
@@ -321,8 +321,8 @@ class RosBag(Source):
                 f"unknown --timestamps {timestamps!r} for a bag; expected one of {ROS_CLOCKS}"
             )
         self.limits = limits or OdometryLimits()
-        AnyReader, AnyReaderError, Stores, get_typestore = _import()
-        self._AnyReader, self._AnyReaderError = AnyReader, AnyReaderError
+        AnyReader, Stores, get_typestore = _import()
+        self._AnyReader = AnyReader
         self._typestore = get_typestore(Stores.ROS2_HUMBLE)
         self.tolerant = tolerant
         with self._open() as reader:

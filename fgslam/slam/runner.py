@@ -40,7 +40,7 @@ from fgslam.slam.calibration import Calibration
 from fgslam.slam.ekf import EkfBackend
 from fgslam.slam.graph import BackendError, BatchSmoother, GraphBackend
 from fgslam.slam.keyframes import KeyframeParams, ScanOdometry
-from fgslam.slam.lifecycle import Landmark, Lifecycle
+from fgslam.slam.lifecycle import Landmark
 from fgslam.slam.loops import LoopCloser, LoopParams
 from fgslam.slam.mapping import MapParams
 from fgslam.slam.step import SlamStep
@@ -151,10 +151,6 @@ class _Session(SlamStep):
         self.failed: dict | None = None
         self.filtered_times: list[float] = []  # s, one per entry of ``filtered``
 
-    @property
-    def mapper(self) -> Lifecycle:
-        return self.map
-
     def feed(self, sf, pre, pose0: NDArray[np.float64] | None, scan=None, speed=(0.0, 0.0)):
         if self.failed is not None:
             return
@@ -172,15 +168,10 @@ def run_slam(
     backend: str = "isam2",
     sensors: str = "fused",
     progress: Callable[[float], None] | None = None,
-    map_params: MapParams | None = None,
     association: str | None = None,
-    keyframes: KeyframeParams | None = None,
-    loops: LoopParams | None = None,
 ) -> SlamResult:
     """Run SLAM with one backend over an event stream; see :func:`run_backends`."""
-    return run_backends(
-        events, cfg, [backend], sensors, progress, map_params, association, keyframes, loops
-    )[0]
+    return run_backends(events, cfg, [backend], sensors, progress, association=association)[0]
 
 
 class SlamPipeline:
@@ -249,7 +240,7 @@ class SlamPipeline:
         if sensors == "sonar":  # the paper's scheme: no laser to match
             kp = replace(kp, policy="every-scan", odometry="wheels")
             lp = replace(lp, enabled=False)
-        self.keyframe_params, self.loop_params = kp, lp
+        self.keyframe_params = kp
         mp = match_params(cfg)
         origin = (cfg.laser.mount.x, cfg.laser.mount.y)
         self.scan_odometry = ScanOdometry(kp, mp, origin, cfg.laser.sigma_time)
@@ -555,7 +546,7 @@ def _result(
     t0 = time.perf_counter()
     traj = be.finish() if final else list(sess.be.trajectory)
     means = {
-        lid: models.normalize(sess.mapper.landmarks[lid].kind, m) for lid, m in be.means().items()
+        lid: models.normalize(sess.map.landmarks[lid].kind, m) for lid, m in be.means().items()
     }
     covs = be.landmark_covariances() if final else {}
     cal = be.calibration_estimate()
@@ -587,7 +578,7 @@ def _result(
         filtered_times=np.array(sess.filtered_times, dtype=float),
         odometry=np.array(kf_odo).reshape(-1, 3),
         odometry_times=np.array(kf_times, dtype=float),
-        landmarks={lid: lm for lid, lm in sess.mapper.landmarks.items() if lm.active},
+        landmarks={lid: lm for lid, lm in sess.map.landmarks.items() if lm.active},
         means=means,
         landmark_covs=covs,
         truth_t=np.array(truth_t),
