@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from factors.geometry import wrap_angles
 from fgslam.config import LaserConfig, SonarConfig
 from fgslam.events import SonarEcho
 from fgslam.sim.raycast import blocked, raycast
@@ -81,11 +82,15 @@ def laser_scan(
     return r
 
 
-def _angle_diff(a: NDArray[np.float64], b: float) -> NDArray[np.float64]:
-    return (a - b + np.pi) % (2 * np.pi) - np.pi
+def wrap_from_minus_pi(a: float) -> float:
+    """``a`` wrapped into [-pi, pi) (:func:`factors.geometry.wrap_angle` gives +pi where this
+    gives -pi: the simulator keeps its convention, e.g. the way it turns toward a waypoint
+    straight behind)."""
+    return (a + math.pi) % (2 * math.pi) - math.pi
 
 
 def _wrap(a: float) -> float:
+    # exact; factors.geometry.wrap_angle rounds a + pi (the last bits differ)
     return math.remainder(a, 2 * math.pi)
 
 
@@ -123,7 +128,7 @@ def sonar_echoes(
     ang = np.arctan2(fy - y, fx - x)
     inc = math.radians(sonar.plane_incidence_deg)
     ok = (s > 0.02) & (s < 0.98) & (dist > 0.05) & (dist < sonar.max_range_plane)
-    ok &= np.abs(_angle_diff(ang, th)) < inc
+    ok &= np.abs(wrap_angles(ang - th)) < inc
     idx = np.flatnonzero(ok)
     if idx.size:
         vis = ~blocked((x, y), np.column_stack([fx[idx], fy[idx]]), segs, circles)
@@ -136,7 +141,7 @@ def sonar_echoes(
         cx, cy, cb = world.corners.T
         d = np.hypot(cx - x, cy - y)
         ang = np.arctan2(cy - y, cx - x)
-        inside = np.abs(_angle_diff(np.arctan2(y - cy, x - cx) - cb, 0)) < math.pi / 4
+        inside = np.abs(wrap_angles(np.arctan2(y - cy, x - cx) - cb)) < math.pi / 4
         ok = inside & (d < sonar.max_range_corner) & (d > 0.05)
         for i in np.flatnonzero(ok):
             reflectors.append(("corner", cx[i], cy[i], float(d[i]), float(ang[i])))
@@ -151,7 +156,7 @@ def sonar_echoes(
         px, py, pr, axis, hw = edges.T
         d = np.hypot(px - x, py - y) - pr
         ang = np.arctan2(py - y, px - x)
-        facing = np.abs(_angle_diff(np.arctan2(y - py, x - px) - axis, 0)) <= hw
+        facing = np.abs(wrap_angles(np.arctan2(y - py, x - px) - axis)) <= hw
         ok = facing & (d < sonar.max_range_edge) & (d > 0.05)
         for i in np.flatnonzero(ok):
             reflectors.append(("edge", px[i], py[i], float(d[i]), float(ang[i])))
@@ -172,10 +177,10 @@ def sonar_echoes(
         if rng.random() < params.misclass_prob:
             kind = ("plane", "corner", "edge")[int(rng.integers(3))]
         r_meas = r * (1 + sound_bias) * (1 + rng.normal(0, params.sonar_range_sigma_rel))
-        b_meas = _angle_diff(brg - th, 0) + rng.normal(
+        b_meas = wrap_from_minus_pi(brg - th) + rng.normal(
             0, math.radians(params.sonar_bearing_sigma_deg)
         )
-        echoes.append(SonarEcho(kind, float(r_meas), float(_angle_diff(b_meas, 0))))
+        echoes.append(SonarEcho(kind, float(r_meas), float(wrap_from_minus_pi(b_meas))))
     return tuple(echoes)
 
 

@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 
 from fgslam.config import RobotConfig
 from fgslam.events import Event, LaserScan, OdometryEvent, SonarReading, TruthPose
-from fgslam.sim.sensors import SimParams, laser_scan, sonar_echoes
+from fgslam.sim.sensors import SimParams, laser_scan, sonar_echoes, wrap_from_minus_pi
 from fgslam.sim.world import World
 
 LIN_ACCEL = 0.4  # m/s^2
@@ -47,10 +47,6 @@ class Run:
         """True pose at the encoder sample nearest to time t."""
         k = int(np.clip(round(t / (self.t[1] - self.t[0])) - 1, 0, len(self.t) - 1))
         return self.poses[k]
-
-
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2 * math.pi) - math.pi
 
 
 def _streams(seed: int) -> list[np.random.Generator]:
@@ -120,7 +116,7 @@ def plan_run(
                 phase = "turn"
                 v_max, w_max = rng_drive.uniform(0.3, 0.5), rng_drive.uniform(0.5, 0.8)
         elif phase == "turn":
-            err = _wrap(math.atan2(b[1] - y, b[0] - x) - th)
+            err = wrap_from_minus_pi(math.atan2(b[1] - y, b[0] - x) - th)
             v_cmd, w_cmd = 0.0, max(-w_max, min(w_max, 2.5 * err))
             if abs(err) < 0.01 and abs(w) < 0.05:
                 phase = "drive"
@@ -130,7 +126,7 @@ def plan_run(
             lat = ux * (y - a[1]) - uy * (x - a[0])
             desired = math.atan2(uy, ux) - math.atan(lat / 0.6)
             v_cmd = min(v_max, math.sqrt(2 * LIN_ACCEL * max(rem, 0.0)))
-            w_cmd = max(-0.6, min(0.6, 2.0 * _wrap(desired - th)))
+            w_cmd = max(-0.6, min(0.6, 2.0 * wrap_from_minus_pi(desired - th)))
             if rem < 0.02:
                 phase, pause_left = "pause", rng_drive.uniform(0.0, 1.5)
         v += max(-LIN_ACCEL * dt, min(LIN_ACCEL * dt, v_cmd - v))
@@ -141,7 +137,7 @@ def plan_run(
         ds = 0.5 * (lr + ll)
         x += ds * math.cos(th + dth / 2)
         y += ds * math.sin(th + dth / 2)
-        th = _wrap(th + dth)
+        th = wrap_from_minus_pi(th + dth)
         lr_list.append(lr)
         ll_list.append(ll)
         poses.append((x, y, th))
