@@ -22,6 +22,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from factors.geometry import between_poses, compose_poses, wrap_angles
 from factors.odometry import integrate_poses
+from fgslam.evaluation import numeric_rows
 
 
 def odometry_path(samples: ArrayLike, wheelbase: float) -> tuple[NDArray, NDArray]:
@@ -91,33 +92,21 @@ def read_relations(path: str | Path) -> NDArray[np.float64]:
     :data:`RELATION_MAX_STAMP` s, a translation beyond :data:`RELATION_MAX_TRANSLATION` m,
     an angle beyond :data:`RELATION_MAX_ANGLE` rad), or a file without relations."""
     rows = []
-    with open(path, encoding="utf-8", errors="replace") as fh:
-        for lineno, line in enumerate(fh, 1):
-            tok = line.split("#", 1)[0].split()
-            if not tok:
-                continue
-            if len(tok) != 8:
+    for lineno, row in numeric_rows(path, 8, "fields (t1 t2 x y z roll pitch yaw)"):
+        for k, (name, v) in enumerate(zip(RELATION_FIELDS, row, strict=True)):
+            top, unit = (
+                (RELATION_MAX_STAMP, "s")
+                if k < 2
+                else (RELATION_MAX_TRANSLATION, "m")
+                if k < 5
+                else (RELATION_MAX_ANGLE, "rad")
+            )
+            if not abs(v) <= top:
                 raise ValueError(
-                    f"line {lineno}: expected 8 fields (t1 t2 x y z roll pitch yaw), got {len(tok)}"
+                    f"line {lineno}: field {name}: {v!r} is not plausible "
+                    f"(finite, at most {top:g} {unit})"
                 )
-            try:
-                row = [float(x) for x in tok]
-            except ValueError:
-                raise ValueError(f"line {lineno}: not a number in {line.strip()[:60]!r}") from None
-            for k, (name, v) in enumerate(zip(RELATION_FIELDS, row, strict=True)):
-                top, unit = (
-                    (RELATION_MAX_STAMP, "s")
-                    if k < 2
-                    else (RELATION_MAX_TRANSLATION, "m")
-                    if k < 5
-                    else (RELATION_MAX_ANGLE, "rad")
-                )
-                if not abs(v) <= top:
-                    raise ValueError(
-                        f"line {lineno}: field {name}: {v!r} is not plausible "
-                        f"(finite, at most {top:g} {unit})"
-                    )
-            rows.append(row)
+        rows.append(row)
     if not rows:
         raise ValueError("no relations (lines t1 t2 x y z roll pitch yaw)")
     return np.array(rows, dtype=float)[:, [0, 1, 2, 3, 7]]

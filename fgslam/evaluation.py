@@ -6,7 +6,7 @@ Poses are (x, y, theta) in m and rad; times in s.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -218,6 +218,28 @@ def write_tum(path: str | Path, t: ArrayLike, poses: ArrayLike) -> None:
             )
 
 
+def numeric_rows(
+    path: str | Path, columns: int, what: str, inline_comments: bool = True
+) -> Iterator[tuple[int, list[float]]]:
+    """(line number, values) of each line of a text table of ``columns`` numbers, blank lines
+    and comments skipped (``#`` anywhere on a line; with ``inline_comments`` False, only a
+    line whose first field starts with ``#``). ValueError naming the line (``line N: ...``;
+    the caller names the file) for another count of fields (``what`` names them, e.g.
+    ``"columns (t x y)"``) or a non-number."""
+    with open(path, encoding="utf-8", errors="replace") as fh:
+        for lineno, line in enumerate(fh, 1):
+            tok = (line.split("#", 1)[0] if inline_comments else line).split()
+            if not tok or tok[0].startswith("#"):
+                continue
+            if len(tok) != columns:
+                raise ValueError(f"line {lineno}: expected {columns} {what}, got {len(tok)}")
+            try:
+                row = [float(x) for x in tok]
+            except ValueError:
+                raise ValueError(f"line {lineno}: not a number in {line.strip()[:60]!r}") from None
+            yield lineno, row
+
+
 TUM_FIELDS = ("timestamp", "tx", "ty", "tz", "qx", "qy", "qz", "qw")
 TUM_MAX_STAMP = 1e10  # s; beyond, not a time (the year 2286 as Unix time)
 TUM_MAX_POSITION = 1e9  # m; beyond, not a position
@@ -236,41 +258,29 @@ def read_tum(
     before it."""
     rows = []
     last = (-math.inf, 0)  # the previous pose's stamp and line
-    with open(path, encoding="utf-8", errors="replace") as fh:
-        for lineno, line in enumerate(fh, 1):
-            tok = line.split()
-            if not tok or tok[0].startswith("#"):
-                continue
-            if len(tok) != 8:
-                raise ValueError(
-                    f"line {lineno}: expected 8 columns (timestamp x y z qx qy qz qw), "
-                    f"got {len(tok)}"
-                )
-            try:
-                row = [float(x) for x in tok]
-            except ValueError:
-                raise ValueError(f"line {lineno}: not a number in {line.strip()[:60]!r}") from None
-            for name, v in zip(TUM_FIELDS, row, strict=True):
-                top = TUM_MAX_STAMP if name == "timestamp" else TUM_MAX_POSITION
-                if not math.isfinite(v) or (name[0] != "q" and abs(v) > top):
-                    raise ValueError(f"line {lineno}: field {name}: {v!r} is not plausible")
-            big = max(abs(v) for v in row[4:])
-            norm = big * math.hypot(*(v / big for v in row[4:])) if big else 0.0
-            if norm < 1e-9:
-                raise ValueError(f"line {lineno}: quaternion (qx qy qz qw) has zero norm")
-            lo, hi = TUM_QUATERNION_NORM
-            if not lo <= norm <= hi:
-                raise ValueError(
-                    f"line {lineno}: quaternion (qx qy qz qw) has norm {norm:.3g}: not a "
-                    f"rotation (a unit quaternion; {lo:g} to {hi:g} accepted)"
-                )
-            if ordered and row[0] < last[0]:
-                raise ValueError(
-                    f"line {lineno}: field timestamp: {row[0]!r} is before {last[0]!r} "
-                    f"(line {last[1]}): the stamps go backwards"
-                )
-            last = (row[0], lineno)
-            rows.append(row)
+    what = "columns (timestamp x y z qx qy qz qw)"
+    for lineno, row in numeric_rows(path, 8, what, inline_comments=False):
+        for name, v in zip(TUM_FIELDS, row, strict=True):
+            top = TUM_MAX_STAMP if name == "timestamp" else TUM_MAX_POSITION
+            if not math.isfinite(v) or (name[0] != "q" and abs(v) > top):
+                raise ValueError(f"line {lineno}: field {name}: {v!r} is not plausible")
+        big = max(abs(v) for v in row[4:])
+        norm = big * math.hypot(*(v / big for v in row[4:])) if big else 0.0
+        if norm < 1e-9:
+            raise ValueError(f"line {lineno}: quaternion (qx qy qz qw) has zero norm")
+        lo, hi = TUM_QUATERNION_NORM
+        if not lo <= norm <= hi:
+            raise ValueError(
+                f"line {lineno}: quaternion (qx qy qz qw) has norm {norm:.3g}: not a "
+                f"rotation (a unit quaternion; {lo:g} to {hi:g} accepted)"
+            )
+        if ordered and row[0] < last[0]:
+            raise ValueError(
+                f"line {lineno}: field timestamp: {row[0]!r} is before {last[0]!r} "
+                f"(line {last[1]}): the stamps go backwards"
+            )
+        last = (row[0], lineno)
+        rows.append(row)
     data = np.array(rows, dtype=float).reshape(-1, 8)
     q = data[:, 4:] / np.linalg.norm(data[:, 4:], axis=1, keepdims=True)
     qx, qy, qz, qw = q.T
@@ -480,23 +490,10 @@ def read_covariances(path: str | Path) -> tuple[NDArray[np.float64], NDArray[np.
     naming the line (``line N: ...``; the caller names the file) for a wrong column count, a
     non-number or a value that is not finite, and for a file without covariances."""
     rows = []
-    with open(path, encoding="utf-8", errors="replace") as fh:
-        for lineno, line in enumerate(fh, 1):
-            tok = line.split("#", 1)[0].split()
-            if not tok:
-                continue
-            if len(tok) != 10:
-                raise ValueError(
-                    f"line {lineno}: expected 10 columns (timestamp and a 3x3 covariance), "
-                    f"got {len(tok)}"
-                )
-            try:
-                row = [float(x) for x in tok]
-            except ValueError:
-                raise ValueError(f"line {lineno}: not a number in {line.strip()[:60]!r}") from None
-            if not all(math.isfinite(v) for v in row):
-                raise ValueError(f"line {lineno}: a value is not finite")
-            rows.append(row)
+    for lineno, row in numeric_rows(path, 10, "columns (timestamp and a 3x3 covariance)"):
+        if not all(math.isfinite(v) for v in row):
+            raise ValueError(f"line {lineno}: a value is not finite")
+        rows.append(row)
     if not rows:
         raise ValueError("no covariances (timestamp and a 3x3 covariance per line)")
     data = np.array(rows, dtype=float)
