@@ -402,24 +402,30 @@ class Outcome:
     detail: str
 
 
-def replay_outcome(raw_dir: str | Path, out: str | Path) -> Outcome:
-    """Run ``fgslam replay RAW_DIR --out OUT`` in this process and classify what it did."""
+def cli_outcome(command: str, args: list[str], done: str) -> Outcome:
+    """Run ``fgslam COMMAND ARGS`` in this process and classify what it did (``done``: the
+    kind of status 0)."""
     from fgslam.cli import main
 
     err = io.StringIO()
     try:
         with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
-            status = main(["replay", str(raw_dir), "--out", str(out)])
+            status = main([command, *args])
     except Exception as exc:  # what the experiment counts: any exception that escaped
         last = traceback.extract_tb(exc.__traceback__)[-1]
         where = f"{Path(last.filename).name}:{last.lineno}"
         return Outcome("traceback", None, f"{type(exc).__name__} at {where}: {exc}"[:300])
     lines = err.getvalue().strip().splitlines()
     if status == 0:
-        return Outcome("decoded", 0, "")
-    if status == 2 and len(lines) == 1 and lines[0].startswith("fgslam replay: error: "):
+        return Outcome(done, 0, "")
+    if status == 2 and len(lines) == 1 and lines[0].startswith(f"fgslam {command}: error: "):
         return Outcome("refused", 2, lines[0])
     return Outcome("odd", status, err.getvalue()[:300])
+
+
+def replay_outcome(raw_dir: str | Path, out: str | Path) -> Outcome:
+    """Run ``fgslam replay RAW_DIR --out OUT`` in this process and classify what it did."""
+    return cli_outcome("replay", [str(raw_dir), "--out", str(out)], "decoded")
 
 
 # -- evaluation inputs: TUM trajectories and relations files (fgslam evaluate)
@@ -507,19 +513,4 @@ def mutated_eval_inputs(seed: int, count: int) -> Iterator[tuple[str, str, str]]
 def evaluate_outcome(args: list[str]) -> Outcome:
     """Run ``fgslam evaluate ARGS`` in this process and classify it as :func:`replay_outcome`
     does ("evaluated" for status 0)."""
-    from fgslam.cli import main
-
-    err = io.StringIO()
-    try:
-        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
-            status = main(["evaluate", *args])
-    except Exception as exc:  # what the experiment counts: any exception that escaped
-        last = traceback.extract_tb(exc.__traceback__)[-1]
-        where = f"{Path(last.filename).name}:{last.lineno}"
-        return Outcome("traceback", None, f"{type(exc).__name__} at {where}: {exc}"[:300])
-    lines = err.getvalue().strip().splitlines()
-    if status == 0:
-        return Outcome("evaluated", 0, "")
-    if status == 2 and len(lines) == 1 and lines[0].startswith("fgslam evaluate: error: "):
-        return Outcome("refused", 2, lines[0])
-    return Outcome("odd", status, err.getvalue()[:300])
+    return cli_outcome("evaluate", args, "evaluated")
