@@ -8,6 +8,9 @@ from pathlib import Path
 
 import numpy as np
 
+from factors.odometry import integrate_poses
+from fgslam.events import LaserScan, OdometryEvent
+
 ROOM = (-2.5, -1.5, 3.0, 2.5)  # x0, y0, x1, y1 (m)
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
 
@@ -242,3 +245,17 @@ def write_native(path, n: int = 30, stamp=None, t0: float = 0.0) -> None:
                 if j == 2:
                     w.write(TruthPose(at("truth", base + 0.1), 0.01 * p, 0.0, 0.0))
             w.write(LaserScan(at("laser", base + 0.15), np.full(5, 2.0)))
+
+
+def odometry_at(events, odometry, kind=LaserScan) -> np.ndarray:
+    """The odometry pose integrated (``odometry``: the configuration's section) from the
+    delivered samples at each event of ``kind``."""
+    o = odometry
+    pose, out = np.zeros(3), []
+    for e in events:
+        if isinstance(e, OdometryEvent):
+            lr, ll = e.ticks_right * o.metres_per_tick_right, e.ticks_left * o.metres_per_tick_left
+            pose = integrate_poses([lr], [ll], o.wheelbase, pose)[-1]
+        elif isinstance(e, kind):
+            out.append(pose.copy())
+    return np.array(out)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from readers_helpers import carmen_text
+from readers_helpers import carmen_text, odometry_at
 from slam_scenes import PAPER
 
 from fgslam.cli import main
@@ -435,17 +435,7 @@ def _stale_log(tmp_path, odom_lines: bool, frozen: range, n: int = 30):
 
 def _odometry_at_scans(log):
     """The odometry pose (integrated from the delivered samples) at each delivered scan."""
-    from factors.odometry import integrate_poses
-
-    o = log.config.odometry
-    pose, poses = np.zeros(3), []
-    for e in log:
-        if isinstance(e, OdometryEvent):
-            lr, ll = e.ticks_right * o.metres_per_tick_right, e.ticks_left * o.metres_per_tick_left
-            pose = integrate_poses([lr], [ll], o.wheelbase, pose)[-1]
-        elif isinstance(e, LaserScan):
-            poses.append(pose.copy())
-    return np.array(poses)
+    return odometry_at(log, log.config.odometry)
 
 
 @pytest.mark.parametrize("odom_lines", [True, False])

@@ -8,7 +8,7 @@ import copy
 
 import numpy as np
 import pytest
-from readers_helpers import bag_drive, fmt, write_bag
+from readers_helpers import bag_drive, fmt, odometry_at, write_bag
 
 from fgslam.events import LaserScan, OdometryEvent, SonarReading, TruthPose
 from fgslam.readers import open_log
@@ -124,17 +124,7 @@ def _bag(tmp_path, ros1: bool, name: str, **kw):
 
 def _odometry_at(events, kind=LaserScan) -> np.ndarray:
     """The odometry pose integrated from the delivered samples at each event of ``kind``."""
-    from factors.odometry import integrate_poses
-
-    o = CFG.odometry
-    pose, out = np.zeros(3), []
-    for e in events:
-        if isinstance(e, OdometryEvent):
-            lr, ll = e.ticks_right * o.metres_per_tick_right, e.ticks_left * o.metres_per_tick_left
-            pose = integrate_poses([lr], [ll], o.wheelbase, pose)[-1]
-        elif isinstance(e, kind):
-            out.append(pose.copy())
-    return np.array(out)
+    return odometry_at(events, CFG.odometry, kind)
 
 
 @pytest.mark.parametrize("ros1", [True, False])
