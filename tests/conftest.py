@@ -72,5 +72,20 @@ def factor_analytic_jacobians(factor: gtsam.NonlinearFactor, values: gtsam.Value
 
 
 @pytest.fixture
+def one_line_error(tmp_path, monkeypatch, capsys) -> Callable[[list[str], str], None]:
+    """``check(argv, msg)``: ``fgslam ARGV``, run in this process in ``tmp_path``, fails with
+    status 2 and one error line (no traceback) that says ``msg``."""
+    from fgslam.cli import main
+
+    def check(argv: list[str], msg: str) -> None:
+        monkeypatch.chdir(tmp_path)
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip()
+        assert msg in err and "\n" not in err and "Traceback" not in err
+
+    return check
+
+
+@pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(12345)

@@ -38,11 +38,8 @@ def test_simulate_is_deterministic_and_plot_log_draws(tmp_path, capsys):
         (["plot-log", "missing.log", "--out", "x.png"], "missing.log"),
     ],
 )
-def test_bad_input_is_one_line(tmp_path, monkeypatch, capsys, argv, msg):
-    monkeypatch.chdir(tmp_path)
-    assert main(argv) == 2
-    err = capsys.readouterr().err.strip()
-    assert msg in err and "\n" not in err and "Traceback" not in err
+def test_bad_input_is_one_line(one_line_error, argv, msg):
+    one_line_error(argv, msg)
 
 
 def test_simulate_custom_world_without_route(tmp_path, capsys):

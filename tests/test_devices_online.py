@@ -157,11 +157,8 @@ def test_cli_replay(clean_run, tmp_path, capsys):
         (["replay", ".", "--out", "x.log"], "no raw recordings"),
     ],
 )
-def test_cli_replay_bad_input_is_one_line(tmp_path, monkeypatch, capsys, argv, msg):
-    monkeypatch.chdir(tmp_path)
-    assert main(argv) == 2
-    err = capsys.readouterr().err.strip()
-    assert msg in err and "\n" not in err and "Traceback" not in err
+def test_cli_replay_bad_input_is_one_line(one_line_error, argv, msg):
+    one_line_error(argv, msg)
 
 
 def test_faults_and_disconnect_lose_nothing_received(tmp_path):

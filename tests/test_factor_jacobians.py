@@ -40,6 +40,24 @@ def wrapped_diff(a, b, angular):
     return np.array([wrap_angle(v) if ang else v for v, ang in zip(d, angular, strict=True)])
 
 
+def check_world_jacobians(residual, to_world, pose, landmark, meas, mount, angular):
+    """A landmark model's plain functions (what the EKF uses) against central differences:
+    ``residual``'s Jacobians w.r.t. the pose and the landmark, the inverse model's
+    (``to_world``) w.r.t. the pose and the measurement (differences wrapped where
+    ``angular``), and the inverse is exact (the residual at the world landmark is zero)."""
+    _, H_x, H_l = residual(pose, landmark, meas, mount)
+    Nx = numeric_jacobian(lambda p: residual(p, landmark, meas, mount)[0], pose)
+    Nl = numeric_jacobian(lambda q: residual(pose, q, meas, mount)[0], landmark)
+    np.testing.assert_allclose(H_x, Nx, atol=1e-5)
+    np.testing.assert_allclose(H_l, Nl, atol=1e-5)
+    w, Hwx, Hwz = to_world(pose, meas, mount)
+    Nwx = numeric_jacobian(lambda p: wrapped_diff(to_world(p, meas, mount)[0], w, angular), pose)
+    Nwz = numeric_jacobian(lambda m: wrapped_diff(to_world(pose, m, mount)[0], w, angular), meas)
+    np.testing.assert_allclose(Hwx, Nwx, atol=1e-5)
+    np.testing.assert_allclose(Hwz, Nwz, atol=1e-5)
+    np.testing.assert_allclose(residual(pose, w, meas, mount)[0], 0.0, atol=1e-9)
+
+
 def check_factor(factor, values):
     analytic = factor_analytic_jacobians(factor, values)
     numeric = factor_numeric_jacobians(factor, values)
@@ -161,22 +179,9 @@ def test_corner_world_jacobians(rng):
     for _ in range(N_CONFIGS):
         pose, mount, corner = corner_case(rng)
         meas = predict_corner(pose, corner, mount)[0] + rng.normal(0, 0.01, 3)
-        _, H_x, H_c = corner_residual(pose, corner, meas, mount)
-        Nx = numeric_jacobian(lambda p: corner_residual(p, corner, meas, mount)[0], pose)
-        Nc = numeric_jacobian(lambda c: corner_residual(pose, c, meas, mount)[0], corner)
-        np.testing.assert_allclose(H_x, Nx, atol=1e-5)
-        np.testing.assert_allclose(H_c, Nc, atol=1e-5)
-        w, Hwx, Hwz = corner_to_world(pose, meas, mount)
-        ang = (False, False, True)
-        Nwx = numeric_jacobian(
-            lambda p: wrapped_diff(corner_to_world(p, meas, mount)[0], w, ang), pose
+        check_world_jacobians(
+            corner_residual, corner_to_world, pose, corner, meas, mount, (False, False, True)
         )
-        Nwz = numeric_jacobian(
-            lambda m: wrapped_diff(corner_to_world(pose, m, mount)[0], w, ang), meas
-        )
-        np.testing.assert_allclose(Hwx, Nwx, atol=1e-5)
-        np.testing.assert_allclose(Hwz, Nwz, atol=1e-5)
-        np.testing.assert_allclose(corner_residual(pose, w, meas, mount)[0], 0.0, atol=1e-9)
 
 
 def test_corner_prediction_geometry():
@@ -193,19 +198,9 @@ def test_point_world_jacobians(rng):
         pose, mount, corner = corner_case(rng)
         point = corner[:2]
         meas = predict_point(pose, point, mount)[0] + rng.normal(0, 0.01, 2)
-        _, H_x, H_p = point_residual(pose, point, meas, mount)
-        Nx = numeric_jacobian(lambda p: point_residual(p, point, meas, mount)[0], pose)
-        Np = numeric_jacobian(lambda q: point_residual(pose, q, meas, mount)[0], point)
-        np.testing.assert_allclose(H_x, Nx, atol=1e-5)
-        np.testing.assert_allclose(H_p, Np, atol=1e-5)
-        w, Hwx, Hwz = point_to_world(pose, meas, mount)
-        np.testing.assert_allclose(
-            Hwx, numeric_jacobian(lambda p: point_to_world(p, meas, mount)[0], pose), atol=1e-5
+        check_world_jacobians(
+            point_residual, point_to_world, pose, point, meas, mount, (False, False)
         )
-        np.testing.assert_allclose(
-            Hwz, numeric_jacobian(lambda m: point_to_world(pose, m, mount)[0], meas), atol=1e-5
-        )
-        np.testing.assert_allclose(point_residual(pose, w, meas, mount)[0], 0.0, atol=1e-9)
 
 
 def test_point_factor_matches_model(rng):

@@ -23,6 +23,17 @@ PHI = np.radians(np.arange(-90, 90.01, 0.5))
 SPAN = math.radians(25)
 
 
+def check_monte_carlo(trials, rtol, nees_range):
+    """``trials``: (error, the fit's stated covariance) per Monte Carlo trial. The errors'
+    sample sigmas match the stated ones (the last fit's) within ``rtol``, and the mean
+    normalised squared error lies strictly inside ``nees_range``."""
+    S = np.cov(np.array([e for e, _ in trials]).T)
+    cov = trials[-1][1]
+    np.testing.assert_allclose(np.sqrt(np.diag(S)), np.sqrt(np.diag(cov)), rtol=rtol)
+    nees = [e @ np.linalg.solve(c, e) for e, c in trials]
+    assert nees_range[0] < np.mean(nees) < nees_range[1]
+
+
 def corner_scan(phi_c, r_c, gamma_p, convex=False, span=SPAN):
     sel = np.abs(PHI - phi_c) < span
     p = PHI[sel]
@@ -47,15 +58,11 @@ def test_line_fit_monte_carlo_covariance():
     sel = np.abs(PHI + 0.2) < 0.4
     p = PHI[sel]
     r0 = line_ranges(-0.5, 2.5, p)
-    errs, nees = [], []
+    trials = []
     for _ in range(600):
         fit = fit_line(p, r0 + rng.normal(0, 0.02, p.size), 0.02, residual_test=None)
-        e = fit.params - [-0.5, 2.5]
-        errs.append(e)
-        nees.append(e @ np.linalg.solve(fit.cov_random, e))
-    S = np.cov(np.array(errs).T)
-    np.testing.assert_allclose(np.sqrt(np.diag(S)), np.sqrt(np.diag(fit.cov_random)), rtol=0.1)
-    assert 1.7 < np.mean(nees) < 2.3
+        trials.append((fit.params - [-0.5, 2.5], fit.cov_random))
+    check_monte_carlo(trials, 0.1, (1.7, 2.3))
 
 
 def test_line_systematic_term_bounds_a_constant_offset():
@@ -82,18 +89,15 @@ def test_corner_fit_monte_carlo_covariance():
     rng = np.random.default_rng(2)
     truth = np.array([-0.3, 2.5, -0.25])
     p, r0 = corner_scan(*truth)
-    errs, nees = [], []
+    trials = []
     for _ in range(500):
         fit = fit_corner(
             p, r0 + rng.normal(0, 0.02, p.size), truth + np.array([0.05, 0.1, -0.1]), 0.02
         )
         e = fit.params - [truth[0], truth[1], truth[2] + math.pi]
         e[2] = wrap_angle(e[2])
-        errs.append(e)
-        nees.append(e @ np.linalg.solve(fit.cov_random, e))
-    S = np.cov(np.array(errs).T)
-    np.testing.assert_allclose(np.sqrt(np.diag(S)), np.sqrt(np.diag(fit.cov_random)), rtol=0.12)
-    assert 2.6 < np.mean(nees) < 3.4
+        trials.append((e, fit.cov_random))
+    check_monte_carlo(trials, 0.12, (2.6, 3.4))
 
 
 def test_corner_fit_prunes_outlying_beams():
@@ -256,19 +260,15 @@ def test_random_covariance_plus_calibration_covers_a_random_range_bias_monte_car
     truth = np.array([0.35, 2.8, 0.3])
     p, r0 = corner_scan(*truth)
     Sc = np.diag([0.01**2, 0.002**2])
-    errs, nees = [], []
+    trials = []
     for _ in range(400):
         o, s = rng.multivariate_normal(np.zeros(2), Sc)
         r = r0 * (1 + s) + o + rng.normal(0, 0.02, p.size)
         fit = fit_corner(p, r, truth, 0.02, sources=[1.0, r])
         e = fit.params - [truth[0], truth[1], truth[2] + math.pi]
         e[0], e[2] = wrap_angle(e[0]), wrap_angle(e[2])
-        C = fit.cov_random + fit.source_jacobian @ Sc @ fit.source_jacobian.T
-        errs.append(e)
-        nees.append(e @ np.linalg.solve(C, e))
-    S = np.cov(np.array(errs).T)
-    np.testing.assert_allclose(np.sqrt(np.diag(S)), np.sqrt(np.diag(C)), rtol=0.12)
-    assert 2.6 < np.mean(nees) < 3.4
+        trials.append((e, fit.cov_random + fit.source_jacobian @ Sc @ fit.source_jacobian.T))
+    check_monte_carlo(trials, 0.12, (2.6, 3.4))
 
 
 def test_line_end_trimming_drops_the_next_walls_grazing_beam():

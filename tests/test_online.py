@@ -25,7 +25,6 @@ from slam_scenes import room_events
 
 from devices.emulators import Faults
 from devices.replay import ReplayFile
-from fgslam.cli import main
 from fgslam.config import load_config
 from fgslam.device_process import DeviceProcess, EmulationSpec
 from fgslam.events import LaserScan, OdometryEvent, SonarReading, TruthPose
@@ -43,6 +42,14 @@ FGSLAM = [sys.executable, "-m", "fgslam.cli"]
 
 
 # ------------------------------------------------------------------ the incremental pipeline
+
+
+def _kill(*procs: subprocess.Popen | None) -> None:
+    """Kill and reap the processes still running (None: never started)."""
+    for p in procs:
+        if p is not None and p.poll() is None:
+            p.kill()
+            p.communicate()
 
 
 def _same_results(a, b) -> None:
@@ -407,10 +414,7 @@ def test_emulate_and_online_commands_with_ctrl_c(tmp_path):
         assert "run started" in e_out and "every host closed its port" in e_out
         assert "stopped:" in e_out and not (links / "laser").exists()
     finally:
-        for p in (online, emu):
-            if p is not None and p.poll() is None:
-                p.kill()
-                p.communicate()
+        _kill(online, emu)
 
 
 def test_killed_online_run_keeps_its_last_checkpoint(tmp_path):
@@ -455,10 +459,7 @@ def test_killed_online_run_keeps_its_last_checkpoint(tmp_path):
         e_out, e_err = emu.communicate(timeout=120)  # the host is gone: it stops
         assert emu.returncode == 0 and "every host closed its port" in e_out, e_err
     finally:
-        for p in (online, emu):
-            if p is not None and p.poll() is None:
-                p.kill()
-                p.communicate()
+        _kill(online, emu)
 
 
 def test_emulate_stops_on_ctrl_c_before_any_host(tmp_path):
@@ -477,9 +478,7 @@ def test_emulate_stops_on_ctrl_c_before_any_host(tmp_path):
         assert "stopped:" in e_out and "Traceback" not in e_err
         assert not (links / "laser").exists()
     finally:
-        if emu.poll() is None:
-            emu.kill()
-            emu.communicate()
+        _kill(emu)
 
 
 def test_emulate_stops_when_its_host_is_gone(tmp_path):
@@ -505,9 +504,7 @@ def test_emulate_stops_when_its_host_is_gone(tmp_path):
         assert emu.returncode == 0, err
         assert "every host closed its port" in out and "stopped:" in out, out
     finally:
-        if emu.poll() is None:
-            emu.kill()
-            emu.communicate()
+        _kill(emu)
 
 
 @pytest.mark.parametrize(
@@ -523,8 +520,5 @@ def test_emulate_stops_when_its_host_is_gone(tmp_path):
         (["emulate", "--noise", "2"], "--noise"),
     ],
 )
-def test_command_errors_are_one_line(tmp_path, monkeypatch, capsys, argv, msg):
-    monkeypatch.chdir(tmp_path)
-    assert main(argv) == 2
-    err = capsys.readouterr().err.strip()
-    assert msg in err and "\n" not in err and "Traceback" not in err
+def test_command_errors_are_one_line(one_line_error, argv, msg):
+    one_line_error(argv, msg)
