@@ -100,6 +100,57 @@ def bag_drive(k: int) -> tuple[float, float, float]:
     return x, y, 0.02 * k
 
 
+def bag_writer(path, ros1: bool):
+    """A rosbags writer of a ROS 1 bag, or of a ROS 2 bag (storage version 8)."""
+    if ros1:
+        from rosbags.rosbag1 import Writer
+
+        return Writer(path)
+    from rosbags.rosbag2 import Writer
+
+    return Writer(path, version=8)
+
+
+def header_message(T, t: float, frame: str, ros1: bool):
+    """A std_msgs/Header stamped ``t`` (s) in ``frame`` (``T``: a typestore's types)."""
+    sec = math.floor(t)
+    kw = {"stamp": T["builtin_interfaces/msg/Time"](sec=sec, nanosec=round((t - sec) * 1e9))}
+    kw["frame_id"] = frame
+    if ros1:
+        kw["seq"] = 0
+    return T["std_msgs/msg/Header"](**kw)
+
+
+def odometry_message(T, header, child: str, pose):
+    """A nav_msgs/Odometry of ``pose`` (a geometry_msgs/Pose), zero twist and covariances."""
+    zero3 = T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
+    return T["nav_msgs/msg/Odometry"](
+        header=header,
+        child_frame_id=child,
+        pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),
+        twist=T["geometry_msgs/msg/TwistWithCovariance"](
+            twist=T["geometry_msgs/msg/Twist"](linear=zero3, angular=zero3),
+            covariance=np.zeros(36),
+        ),
+    )
+
+
+def laser_scan_message(T, header, ranges, angle_min, angle_max, increment, scan_time):
+    """A sensor_msgs/LaserScan of ``ranges`` (float32; 0.05 to 30 m), no intensities."""
+    return T["sensor_msgs/msg/LaserScan"](
+        header=header,
+        angle_min=angle_min,
+        angle_max=angle_max,
+        angle_increment=increment,
+        time_increment=0.0,
+        scan_time=scan_time,
+        range_min=0.05,
+        range_max=30.0,
+        ranges=ranges,
+        intensities=np.zeros(0, dtype=np.float32),
+    )
+
+
 def write_bag(
     path,
     ros1: bool,
@@ -126,8 +177,6 @@ def write_bag(
 
     ts = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
     T = ts.types
-    Header, Time = T["std_msgs/msg/Header"], T["builtin_interfaces/msg/Time"]
-
     count = {"/scan": 0, "/odom": 0, "/sonar": 0}
 
     def hdr(t, frame):
@@ -136,23 +185,11 @@ def write_bag(
             t = header(topic, count[topic], t)
         if zero_stamps:  # an unset header: the bag's record time is the only clock
             t = 0.0
-        sec = math.floor(t)
-        kw = {"stamp": Time(sec=sec, nanosec=round((t - sec) * 1e9)), "frame_id": frame}
-        if ros1:
-            kw["seq"] = 0
-        return Header(**kw)
+        return header_message(T, t, frame, ros1)
 
-    if ros1:
-        from rosbags.rosbag1 import Writer
-
-        writer = Writer(path)
-    else:
-        from rosbags.rosbag2 import Writer
-
-        writer = Writer(path, version=8)
+    writer = bag_writer(path, ros1)
     g = {k.split("/")[-1]: T[k] for k in T if k.startswith("geometry_msgs/msg/")}
     ser = ts.serialize_ros1 if ros1 else ts.serialize_cdr
-    zero3 = g["Vector3"](x=0.0, y=0.0, z=0.0)
 
     def put(conn, topic, t, data):
         ns = round(1e9 * (record(topic, count[topic], t) if record else t))
@@ -174,31 +211,15 @@ def write_bag(
             if shift is not None and k >= shift[0]:
                 x += shift[1]  # the odometry jumped and stayed
             pose = g["Pose"](position=g["Point"](x=x, y=y, z=0.0), orientation=q)
-            odom = T["nav_msgs/msg/Odometry"](
-                header=hdr(t, "odom"),
-                child_frame_id="base_link",
-                pose=g["PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),
-                twist=g["TwistWithCovariance"](
-                    twist=g["Twist"](linear=zero3, angular=zero3), covariance=np.zeros(36)
-                ),
-            )
+            odom = odometry_message(T, hdr(t, "odom"), "base_link", pose)
             put(co, "/odom", t, ser(odom, "nav_msgs/msg/Odometry"))
             if k % 2 == 0:
                 continue
             stamp = t - 0.5 if k == backwards_scan else t
             r = np.full(181, 2.0, dtype=np.float32)
             r[0], r[1], r[2] = np.inf, 0.01, 40.0  # no return, below range_min, beyond max
-            scan = T["sensor_msgs/msg/LaserScan"](
-                header=hdr(stamp, "laser"),
-                angle_min=-math.pi / 2,
-                angle_max=math.pi / 2,
-                angle_increment=math.pi / 180,
-                time_increment=0.0,
-                scan_time=0.1,
-                range_min=0.05,
-                range_max=30.0,
-                ranges=r,
-                intensities=np.zeros(0, dtype=np.float32),
+            scan = laser_scan_message(
+                T, hdr(stamp, "laser"), r, -math.pi / 2, math.pi / 2, math.pi / 180, 0.1
             )
             put(cs, "/scan", t, ser(scan, "sensor_msgs/msg/LaserScan"))
             if cr is not None:

@@ -9,7 +9,14 @@ import math
 
 import numpy as np
 import pytest
-from readers_helpers import ROOM, ray_rect
+from readers_helpers import (
+    ROOM,
+    bag_writer,
+    header_message,
+    laser_scan_message,
+    odometry_message,
+    ray_rect,
+)
 
 from fgslam.events import LaserScan, OdometryEvent, scan_bearings
 from fgslam.readers import open_log
@@ -95,12 +102,7 @@ def write_bag(
     rng = np.random.default_rng(5)
 
     def header(t, frame_id):
-        sec = math.floor(t)
-        kw = {"stamp": T["builtin_interfaces/msg/Time"](sec=sec, nanosec=round((t - sec) * 1e9))}
-        kw["frame_id"] = frame_id
-        if ros1:
-            kw["seq"] = 0
-        return T["std_msgs/msg/Header"](**kw)
+        return header_message(T, t, frame_id, ros1)
 
     def tf_message(t, transforms):
         out = [
@@ -115,15 +117,7 @@ def write_bag(
         ]
         return ser(T["tf2_msgs/msg/TFMessage"](transforms=out), "tf2_msgs/msg/TFMessage")
 
-    if ros1:
-        from rosbags.rosbag1 import Writer
-
-        writer = Writer(path)
-    else:
-        from rosbags.rosbag2 import Writer
-
-        writer = Writer(path, version=8)
-    zero3 = g["Vector3"](x=0.0, y=0.0, z=0.0)
+    writer = bag_writer(path, ros1)
     with writer:
         cs = writer.add_connection("/scan", "sensor_msgs/msg/LaserScan", typestore=ts)
         co = writer.add_connection("/odom", "nav_msgs/msg/Odometry", typestore=ts)
@@ -135,14 +129,7 @@ def write_bag(
             t = 1.0 + 0.1 * j
             x, y, th = robot_pose(t)
             pose = g["Pose"](position=g["Point"](x=x, y=y, z=0.0), orientation=_quaternion(T, th))
-            odom = T["nav_msgs/msg/Odometry"](
-                header=header(t, "odom"),
-                child_frame_id=child,
-                pose=g["PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),
-                twist=g["TwistWithCovariance"](
-                    twist=g["Twist"](linear=zero3, angular=zero3), covariance=np.zeros(36)
-                ),
-            )
+            odom = odometry_message(T, header(t, "odom"), child, pose)
             writer.write(co, round(t * 1e9), ser(odom, "nav_msgs/msg/Odometry"))
             odom_tf = [("odom", child, x, y, 0.0, th, 0.0)]
             writer.write(ct, round(t * 1e9), tf_message(t, [*odom_tf, *tf_dynamic]))
@@ -154,18 +141,7 @@ def write_bag(
             r = ray_rect(compose(robot_pose(ts_), mount), angles)
             r = (r + noise * rng.standard_normal(n)).astype(np.float32)
             r[0], r[1], r[2] = np.inf, 30.0, np.nan  # no return, a max-range reading, NaN
-            scan = T["sensor_msgs/msg/LaserScan"](
-                header=header(ts_, frame),
-                angle_min=a0,
-                angle_max=a0 + (n - 1) * inc,
-                angle_increment=inc,
-                time_increment=0.0,
-                scan_time=0.2,
-                range_min=0.05,
-                range_max=30.0,
-                ranges=r,
-                intensities=np.zeros(0, dtype=np.float32),
-            )
+            scan = laser_scan_message(T, header(ts_, frame), r, a0, a0 + (n - 1) * inc, inc, 0.2)
             writer.write(cs, round(ts_ * 1e9), ser(scan, "sensor_msgs/msg/LaserScan"))
 
 
