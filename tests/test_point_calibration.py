@@ -9,6 +9,7 @@ import math
 import numpy as np
 import pytest
 
+from fgslam.readers.common import relative
 from fgslam.readers.victoria import Sighting, Step, VictoriaPark
 from fgslam.slam.point_calibration import fit_scale, scaled_covariance, sighting_nll
 from fgslam.slam.pointslam import association_agreement, run_points, self_calibrate
@@ -30,15 +31,7 @@ def park(true_scale, seed: int = 0, laps: int = 2, per_lap: int = 200) -> Victor
     data = VictoriaPark()
     for k in range(n + 1):
         if k:
-            p, q = truth[k - 1], truth[k]
-            c, s = math.cos(p[2]), math.sin(p[2])
-            d = np.array(
-                [
-                    c * (q[0] - p[0]) + s * (q[1] - p[1]),
-                    -s * (q[0] - p[0]) + c * (q[1] - p[1]),
-                    math.remainder(q[2] - p[2], 2 * math.pi),
-                ]
-            )
+            d = relative(truth[k - 1], truth[k])
             data.steps.append(Step(k - 1, k, d + sig * rng.standard_normal(3), STATED))
         p = truth[k]
         c, s = math.cos(p[2]), math.sin(p[2])
