@@ -21,25 +21,19 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
-import sys
-from pathlib import Path
 
 import numpy as np
 
-HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE.parent / "tests"))
-
-from slam_scenes import PAPER, ROOM  # noqa: E402
-
-from factors.line import line_residual  # noqa: E402
-from fgslam import evaluation  # noqa: E402
-from fgslam.config import load_config, with_scanmatch  # noqa: E402
-from fgslam.events import TruthPose  # noqa: E402
-from fgslam.frontend.pipeline import FrontEnd  # noqa: E402
-from fgslam.sim.sensors import SimParams  # noqa: E402
-from fgslam.sim.simulate import events, plan_run  # noqa: E402
-from fgslam.sim.world import load_world, parse_world  # noqa: E402
-from fgslam.slam.runner import run_backends  # noqa: E402
+from factors.line import line_residual
+from fgslam import evaluation
+from fgslam.config import load_config, with_scanmatch
+from fgslam.events import TruthPose
+from fgslam.frontend.pipeline import FrontEnd
+from fgslam.sim.scenes import PAPER, ROOM
+from fgslam.sim.sensors import SimParams
+from fgslam.sim.simulate import events, plan_run
+from fgslam.sim.world import load_world, parse_world
+from fgslam.slam.runner import run_backends
 
 EXACT = {"radius_error_right": 0.0, "radius_error_left": 0.0, "wheelbase_error": 0.0}
 STRAIGHT = {

@@ -1,25 +1,21 @@
 """Robust kernels under wrong associations: the measured choice of the graph's noise model.
 
 Run: python experiments/robust_kernels.py [--seeds 3 4 5] [--wrong 0.1]
-A simulated point-landmark run (two laps among 12 trees, noisy odometry and sightings, as in
-tests/test_real_slam.py) with the given association, clean and with a share ``--wrong`` of the
-sightings moved to another tree; batch and iSAM2 with each kernel of
-``fgslam.slam.models.m_estimator`` (threshold k = sqrt(chi2_95(dim))). Prints the ATE (m).
+A simulated point-landmark run (``fgslam.sim.scenes.park_run``: two laps among 12 trees, noisy
+odometry and sightings, as in tests/test_map_management.py) with the given association, clean
+and with a share ``--wrong`` of the sightings moved to another tree; batch and iSAM2 with each
+kernel of ``fgslam.slam.models.m_estimator`` (threshold k = sqrt(chi2_95(dim))). Prints the ATE
+(m).
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-
-from test_map_management import _park
-
 from fgslam import evaluation
+from fgslam.sim.scenes import park_run
 from fgslam.slam import pointslam
 from fgslam.slam.models import ROBUST_KERNELS
 
@@ -36,7 +32,7 @@ def main() -> None:
     args = ap.parse_args()
     print(f"| kernel | backend | ATE clean (m) | ATE {100 * args.wrong:.0f} % wrong (m) | ratio |")
     print("|---|---|---|---|---|")
-    runs = {s: (_park(s), _park(s, args.wrong)) for s in args.seeds}
+    runs = {s: (park_run(s), park_run(s, args.wrong)) for s in args.seeds}
     for kernel in ROBUST_KERNELS:
         for backend in ("batch", "isam2"):
             clean = [ate(c[0], c[1], kernel, backend) for c, _ in runs.values()]

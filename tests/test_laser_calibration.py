@@ -8,10 +8,10 @@ import dataclasses
 
 import numpy as np
 import pytest
-from slam_scenes import PAPER, ROOM
 
 from fgslam import evaluation
 from fgslam.config import ConfigError, from_dict, load_config, with_scanmatch
+from fgslam.sim.scenes import PAPER, ROOM
 from fgslam.sim.sensors import SimParams
 from fgslam.sim.simulate import events, plan_run
 from fgslam.sim.world import parse_world
@@ -94,7 +94,7 @@ def test_wheels_and_laser_offset_recovered_together():
     scale, which only the wheels' scale could tell apart, left out), iSAM2 and batch: the
     wheels within 3 sigma of the truth, the offset within 5 mm of it. Measured: 1.35 cm,
     4.9 sigma over, as the front end's lines are measured 2-5 mm too far on average in
-    this room (experiments/README.md, "Laser range calibration"); the EKF likewise."""
+    this room (experiments/README.md, laser_calibration.py); the EKF likewise."""
     truth = np.array([0.02, -0.015, 0.025, 0.01])
     evs, cfg = _biased_room(0.01, 0.0, tuple(truth[:3]))
     cfg = dataclasses.replace(

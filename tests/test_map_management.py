@@ -10,13 +10,13 @@ import math
 import gtsam
 import numpy as np
 import pytest
-from slam_scenes import PAPER, room_events
 
 from factors.odometry import Preintegrated
 from fgslam import evaluation
 from fgslam.config import with_scanmatch
 from fgslam.errors import RunWarning
 from fgslam.frontend.features import Feature
+from fgslam.sim.scenes import PAPER, park_run, room_events
 from fgslam.slam import association, step
 from fgslam.slam.association import AssociationParams, Candidate
 from fgslam.slam.ekf import EkfBackend
@@ -192,24 +192,6 @@ def test_landmark_in_view_and_never_seen_again_is_marked_unreliable(tmp_path):
 # ------------------------------------------------------------------ robust back end
 
 
-def _park(seed, wrong=0.0):
-    """A point-landmark run (two laps among 12 trees) with noisy odometry and sightings;
-    ``wrong``: that share of the sightings moved to another (random) tree."""
-    import test_real_slam
-
-    data, truth = test_real_slam.synthetic_park(noise=1.0, seed=seed)
-    rng = np.random.default_rng(seed + 100)
-    trees = sorted({s.landmark for v in data.sightings.values() for s in v})
-    moved = 0
-    for v in data.sightings.values():
-        for i, s in enumerate(v):
-            if rng.random() < wrong:
-                other = int(rng.choice([t for t in trees if t != s.landmark]))
-                v[i] = type(s)(s.pose, other, s.xy, s.cov)
-                moved += 1
-    return data, truth, moved
-
-
 def test_robust_graph_survives_ten_percent_wrong_associations():
     """10 % of the sightings moved to another tree: the robust (Cauchy, the default) batch
     and iSAM2 solutions stay within 2x of the clean run's ATE, the Gaussian one does not
@@ -220,8 +202,8 @@ def test_robust_graph_survives_ten_percent_wrong_associations():
         r = pointslam.run_points(data, backend, "given", robust=robust)
         return evaluation.ate(r.poses, truth)["rmse"]
 
-    clean, truth, _ = _park(3)
-    bad, _, moved = _park(3, 0.1)
+    clean, truth, _ = park_run(3)
+    bad, _, moved = park_run(3, 0.1)
     assert moved > 20
     a_clean = ate(clean, truth, "cauchy")
     a_plain = ate(bad, truth, "none")
@@ -235,7 +217,7 @@ def test_isam2_final_estimate_is_at_the_batch_optimum():
     within 1 % of batch LM's on the same graph (a real Victoria-Park-like noisy run)."""
     from fgslam.slam import pointslam
 
-    data, _, _ = _park(5, 0.0)
+    data, _, _ = park_run(5, 0.0)
     be = {}
     orig = GraphBackend.__init__
 

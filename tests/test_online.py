@@ -21,7 +21,6 @@ from collections import Counter
 import numpy as np
 import pytest
 from devices_helpers import cpu_hogs, wait_until
-from slam_scenes import room_events
 
 from devices.emulators import Faults
 from devices.replay import ReplayFile
@@ -32,6 +31,7 @@ from fgslam.logfile import LogReader
 from fgslam.online import online_main, run_online, source
 from fgslam.ports import laser_distances_cm, replay, replay_to_log, start_emulators
 from fgslam.sim import simulate_to_log
+from fgslam.sim.scenes import room_events
 from fgslam.sim.world import load_world
 from fgslam.slam.runner import SlamPipeline, run_backends, run_slam
 

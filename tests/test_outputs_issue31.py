@@ -17,12 +17,12 @@ from collections import Counter
 
 import numpy as np
 import pytest
-from slam_scenes import room_events
 
 from fgslam import evaluation
 from fgslam.cli import main
 from fgslam.errors import UserError
 from fgslam.events import TruthPose
+from fgslam.sim.scenes import room_events
 from fgslam.slam import outputs, runner
 from fgslam.slam.compare import markdown_table, plot_comparison
 from fgslam.slam.graph import BackendError

@@ -10,7 +10,6 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from readers_helpers import carmen_text, odometry_at
-from slam_scenes import PAPER
 
 from fgslam.cli import main
 from fgslam.events import LaserScan, OdometryEvent, TruthPose
@@ -18,6 +17,7 @@ from fgslam.readers import open_log
 from fgslam.readers.carmen import CarmenLog
 from fgslam.readers.common import MAX_SAMPLES, ReaderError
 from fgslam.readers.sanity import INDEX_PERIOD, OdometryLimits, implausible, index_stamps
+from fgslam.sim.scenes import PAPER
 
 TIMED = ("FLASER", "ODOM")
 

@@ -4,7 +4,6 @@ and own association; fgslam convert / run / evaluate on a CARMEN log."""
 from __future__ import annotations
 
 import json
-import math
 
 import numpy as np
 import pytest
@@ -12,57 +11,9 @@ from readers_helpers import DATA, carmen_text
 
 from fgslam.cli import main
 from fgslam.logfile import read_log
-from fgslam.readers.victoria import Sighting, Step, VictoriaPark, read_victoria
+from fgslam.readers.victoria import read_victoria
+from fgslam.sim.scenes import synthetic_park
 from fgslam.slam.pointslam import association_agreement, run_points
-
-
-def synthetic_park(noise: float = 0.0, seed: int = 0) -> tuple[VictoriaPark, np.ndarray]:
-    """A robot driving two laps of an 18 m circle among 12 trees, with exact (or noisy)
-    odometry and sightings of the trees within 15 m. Returns the data and the true poses in
-    the frame of the first pose (where point SLAM starts)."""
-    rng = np.random.default_rng(seed)
-    trees = np.array(
-        [[22 * math.cos(a), 22 * math.sin(a)] for a in np.linspace(0, 2 * math.pi, 8, False)]
-        + [[14 * math.cos(a), 14 * math.sin(a)] for a in np.linspace(0.3, 2 * math.pi, 4, False)]
-    )
-    n = 160
-    poses = np.array(
-        [
-            [18 * math.cos(a), 18 * math.sin(a), a + math.pi / 2]
-            for a in np.linspace(0, 4 * math.pi, n + 1)
-        ]
-    )
-    data = VictoriaPark()
-    cov_o = np.diag([0.01, 0.01, 0.001]) ** 2 + np.eye(3) * 1e-6
-    idx = 0
-    for k in range(n + 1):
-        if k:
-            a, b = poses[k - 1], poses[k]
-            c, s = math.cos(a[2]), math.sin(a[2])
-            d = np.array(
-                [
-                    c * (b[0] - a[0]) + s * (b[1] - a[1]),
-                    -s * (b[0] - a[0]) + c * (b[1] - a[1]),
-                    math.remainder(b[2] - a[2], 2 * math.pi),
-                ]
-            )
-            d = d + noise * rng.standard_normal(3) * [0.01, 0.01, 0.001]
-            data.steps.append(Step(idx, idx + 1, d, cov_o))
-            idx += 1
-        p = poses[k]
-        c, s = math.cos(p[2]), math.sin(p[2])
-        for j, t in enumerate(trees):
-            dx, dy = t - p[:2]
-            xy = np.array([c * dx + s * dy, -s * dx + c * dy])
-            if np.hypot(*xy) < 15 and xy[0] > 0:
-                xy = xy + noise * rng.standard_normal(2) * 0.05
-                data.sightings.setdefault(idx, []).append(
-                    Sighting(idx, 1000 + j, xy, np.eye(2) * 0.05**2)
-                )
-    c, s = math.cos(poses[0, 2]), math.sin(poses[0, 2])
-    d = poses[:, :2] - poses[0, :2]
-    local = np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]])
-    return data, np.column_stack([local, poses[:, 2] - poses[0, 2]])
 
 
 @pytest.mark.parametrize("backend", ["ekf", "isam2", "batch"])

@@ -9,11 +9,11 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from slam_scenes import room_events
 
 from fgslam import evaluation
 from fgslam.events import LaserScan, OdometryEvent
 from fgslam.frontend.features import End, Feature
+from fgslam.sim.scenes import room_events
 from fgslam.slam import models
 from fgslam.slam.ekf import EkfBackend
 from fgslam.slam.mapping import MapParams
@@ -52,12 +52,11 @@ def test_consistent_when_the_errors_match_the_models():
     """With only the random errors the models describe (no systematic laser, odometry or
     speed-of-sound errors, no mixed pixels, phantoms or misclassifications), every backend's
     pose NEES is near its 3 degrees of freedom; with the simulator's systematic errors the
-    estimates are overconfident (reported in experiments/README.md)."""
+    estimates are overconfident (experiments/README.md, consistency_sources.py)."""
     import dataclasses
 
-    from slam_scenes import ROOM
-
     from fgslam.config import load_config
+    from fgslam.sim.scenes import ROOM
     from fgslam.sim.sensors import SimParams
     from fgslam.sim.simulate import events, plan_run
     from fgslam.sim.world import parse_world

@@ -1,0 +1,114 @@
+"""Small simulated scenes with known truth, shared by the tests and the experiments.
+
+- :data:`ROOM` and :func:`room_events`: a room with a pillar, a table and a recessed door,
+  driven around for ~40 s (all events in memory).
+- :data:`PAPER`: the paper's scheme as a ``[scanmatch]`` section (wheel odometry, every scan a
+  keyframe, no loop closures), for :func:`fgslam.config.with_scanmatch`.
+- :func:`synthetic_park` and :func:`park_run`: point-landmark data in the Victoria Park format
+  (two laps among 12 trees), exact or noisy, optionally with wrong associations.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import numpy as np
+
+from fgslam.config import load_config
+from fgslam.readers.victoria import Sighting, Step, VictoriaPark
+from fgslam.sim.sensors import SimParams
+from fgslam.sim.simulate import events, plan_run
+from fgslam.sim.world import parse_world
+
+# the paper's scheme: wheel odometry, every scan a keyframe, no loop closures (the tests of
+# map management and of the wheel-odometry models that count keyframes per scan)
+PAPER = {"odometry": "wheels", "keyframes": "every-scan", "loop_closures": "off"}
+
+ROOM = {
+    "name": "room",
+    "walls": [
+        {"id": "r", "points": [[0, 0], [9, 0], [9, 6], [0, 6]], "closed": True},
+        {"id": "p1", "points": [[4, 2.6], [4.6, 2.6], [4.6, 3.4], [4, 3.4]], "closed": True},
+    ],
+    "doors": [
+        {"wall": "r", "segment": 2, "at": 3.0, "width": 0.9, "recess": 0.15, "side": "right"}
+    ],
+    "tables": [{"x": 7.2, "y": 4.6, "width": 0.45, "depth": 0.45}],
+    "route": [[1.5, 1.2], [7.5, 1.2], [7.5, 4.9 - 0.8], [1.5, 4.6], [1.5, 1.2], [6.0, 1.2]],
+}
+
+
+@functools.cache
+def room_events(seed: int = 0, duration: float | None = None) -> tuple:
+    """The room's run with the default robot: (events, configuration, world)."""
+    cfg = load_config()
+    w = parse_world(ROOM, "room")
+    run = plan_run(w, cfg, seed, SimParams(), duration)
+    return tuple(events(w, cfg, run)), cfg, w
+
+
+def synthetic_park(noise: float = 0.0, seed: int = 0) -> tuple[VictoriaPark, np.ndarray]:
+    """A robot driving two laps of an 18 m circle among 12 trees, with exact (or noisy)
+    odometry and sightings of the trees within 15 m. Returns the data and the true poses in
+    the frame of the first pose (where point SLAM starts)."""
+    rng = np.random.default_rng(seed)
+    trees = np.array(
+        [[22 * math.cos(a), 22 * math.sin(a)] for a in np.linspace(0, 2 * math.pi, 8, False)]
+        + [[14 * math.cos(a), 14 * math.sin(a)] for a in np.linspace(0.3, 2 * math.pi, 4, False)]
+    )
+    n = 160
+    poses = np.array(
+        [
+            [18 * math.cos(a), 18 * math.sin(a), a + math.pi / 2]
+            for a in np.linspace(0, 4 * math.pi, n + 1)
+        ]
+    )
+    data = VictoriaPark()
+    cov_o = np.diag([0.01, 0.01, 0.001]) ** 2 + np.eye(3) * 1e-6
+    idx = 0
+    for k in range(n + 1):
+        if k:
+            a, b = poses[k - 1], poses[k]
+            c, s = math.cos(a[2]), math.sin(a[2])
+            d = np.array(
+                [
+                    c * (b[0] - a[0]) + s * (b[1] - a[1]),
+                    -s * (b[0] - a[0]) + c * (b[1] - a[1]),
+                    math.remainder(b[2] - a[2], 2 * math.pi),
+                ]
+            )
+            d = d + noise * rng.standard_normal(3) * [0.01, 0.01, 0.001]
+            data.steps.append(Step(idx, idx + 1, d, cov_o))
+            idx += 1
+        p = poses[k]
+        c, s = math.cos(p[2]), math.sin(p[2])
+        for j, t in enumerate(trees):
+            dx, dy = t - p[:2]
+            xy = np.array([c * dx + s * dy, -s * dx + c * dy])
+            if np.hypot(*xy) < 15 and xy[0] > 0:
+                xy = xy + noise * rng.standard_normal(2) * 0.05
+                data.sightings.setdefault(idx, []).append(
+                    Sighting(idx, 1000 + j, xy, np.eye(2) * 0.05**2)
+                )
+    c, s = math.cos(poses[0, 2]), math.sin(poses[0, 2])
+    d = poses[:, :2] - poses[0, :2]
+    local = np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]])
+    return data, np.column_stack([local, poses[:, 2] - poses[0, 2]])
+
+
+def park_run(seed: int, wrong: float = 0.0) -> tuple[VictoriaPark, np.ndarray, int]:
+    """The noisy :func:`synthetic_park` of ``seed`` with a share ``wrong`` of its sightings
+    moved to another (random) tree. Returns the data, the true poses and how many sightings
+    were moved."""
+    data, truth = synthetic_park(noise=1.0, seed=seed)
+    rng = np.random.default_rng(seed + 100)
+    trees = sorted({s.landmark for v in data.sightings.values() for s in v})
+    moved = 0
+    for v in data.sightings.values():
+        for i, s in enumerate(v):
+            if rng.random() < wrong:
+                other = int(rng.choice([t for t in trees if t != s.landmark]))
+                v[i] = type(s)(s.pose, other, s.xy, s.cov)
+                moved += 1
+    return data, truth, moved
