@@ -600,7 +600,7 @@ def link_motions(
     wheels slip. On the real logs, of the links where the two disagreed at p = 0.999 the
     scan match was the nearer to the reference poses in 3 of 3 (Intel) and 61 of 62
     (Freiburg 079); in the simulated corridor the wheels were right in every case (the
-    matcher's tail along bare walls and behind people walking): experiments/README.md. The
+    matcher's tail along bare walls and behind people walking): CHANGELOG.md (issue 14). The
     EKF's rule only: the factor graph keeps both as robust factors, and the landmarks and
     loops decide (given to the graph too, the rule took the corridor from 7 cm to 2.6 m)."""
     if motion_mahalanobis(wheels, scan) <= gate:

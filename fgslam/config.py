@@ -243,7 +243,7 @@ class FrontendConfig:
     the perpendicular distance, so a line may end with a grazing beam of the next wall,
     its range tens of cm off; in the simulated room that biased lines 2 mm outward on
     average. Off by default: on the relations benchmark it left Intel and MIT unchanged
-    but took Freiburg 079 from 0.039 to 0.136 m (experiments/README.md).
+    but took Freiburg 079 from 0.039 to 0.136 m (experiments/README.md, real_relations.py).
     """
 
     min_points: int = 0
@@ -275,7 +275,8 @@ class ScanMatchConfig:
     - ``model_error_xy`` (m), ``model_error_theta_deg``: the model error every scan match's
       covariance gets on top of its residual-based part (surfaces the two scans sample at
       other places, clutter that is not a line); negative: derived from the laser (half a
-      grid cell, one beam; measured on the benchmark's relations, experiments/README.md);
+      grid cell, one beam; measured on the benchmark's relations: experiments/README.md,
+      scanmatch_consistency.py; CHANGELOG.md, issue 14);
     - ``motion_gate_p``: with ``odometry`` both, where the scan match and the wheel
       odometry disagree at this chi-square level the EKF predicts with the scan match alone
       (wheels slip); the factor graph keeps both as robust factors (the rest of the graph

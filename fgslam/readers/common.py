@@ -189,7 +189,8 @@ def derived_config(
         hole_tolerance=OdometryLimits().hole,
         # the virtual drive's "wheels" replay the log's odometry poses, which already hold
         # the robot's own calibration: no physical radii to estimate (and on Freiburg 079
-        # estimating them took the relations from 0.037 to 0.129 m: experiments/README.md)
+        # estimating them took the relations from 0.037 to 0.129 m: experiments/README.md,
+        # real_relations.py)
         calibration="off",
     )
     return dataclasses.replace(

@@ -138,7 +138,7 @@ class GraphBackend(Backend):
     estimate is at the optimum. (Until d4a6cdb: a new ISAM2 over the same factors, threshold
     0.01, updated until converged; its first update alone, a full elimination inside iSAM2,
     cost ~1 s of CPU on 200 s of the corridor against ~0.1 s per Gauss-Newton step, and it
-    stopped further from the optimum: experiments/README.md.)
+    stopped further from the optimum: CHANGELOG.md, issue 12.)
 
     :meth:`means` is a cache: refreshed in full every ``refresh_every`` keyframes, and for the
     landmarks each keyframe touched; association uses it only to pick candidates (a loose

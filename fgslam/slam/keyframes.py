@@ -147,7 +147,7 @@ class ScanOdometry:
         both scans."""
         self.p = params
         # ambiguous matches are rejected here too: kept with their covariance (the wheels to
-        # fill in) they took Intel from 0.23 to 1.8 m (experiments/README.md)
+        # fill in) they took Intel from 0.23 to 1.8 m (CHANGELOG.md, issue 14)
         self.mp = dataclasses.replace(
             match_params, min_score=params.match_min_score, min_overlap=params.match_min_overlap
         )

@@ -16,15 +16,15 @@ at most ``max_see_through``, it agrees with the backend's relative pose and cova
 pose (3 sigma within ``confident_xy`` and ``confident_theta``). A closure in doubt (the first
 closure of a long loop, where a similar-looking corridor elsewhere would pass; one that an
 overconfident estimate calls inconsistent: on the real logs every such rejection was right,
-experiments/README.md) waits for a second one, from a keyframe at most ``confirm_window``
+CHANGELOG.md, issue 14) waits for a second one, from a keyframe at most ``confirm_window``
 later, that agrees with it through the estimate's local geometry (both old keyframes in the
 old map, both new ones along the new chain: within ``pair_xy`` and ``pair_theta``); then both
 enter. A false match rarely repeats consistently. Accepted closures enter the graph as
 robust between factors. Every attempt is kept in :attr:`LoopCloser.closures`
 (report.json, map.png).
 
-What a search costs (a match over the window is most of it; experiments/README.md, issue 14
-"Speed"): a candidate's local map is built once and kept (the last ``cache_size`` candidates)
+What a search costs (a match over the window is most of it; CHANGELOG.md, issue
+14): a candidate's local map is built once and kept (the last ``cache_size`` candidates)
 while its keyframes keep their poses relative to it (within ``cache_xy``, ``cache_theta``). A
 candidate is not matched when the local map's beams cover less than ``min_view`` of the
 current scan placed at the predicted pose (the old scans looked elsewhere: the robot passes
@@ -71,7 +71,7 @@ class LoopParams:
     max_search_xy: float = 2.0
     # the window's floor: the estimate is overconfident after closures (Intel: 0.8 m off at
     # 2500 s with 3 sigma below 0.3 m, every closure there "diverged"; 0.3 m / 5 deg before,
-    # Intel 0.076 -> 0.048 m, MIT and Freiburg unchanged: experiments/README.md)
+    # Intel 0.076 -> 0.048 m, MIT and Freiburg unchanged: CHANGELOG.md, issue 14)
     min_search_xy: float = 1.0
     max_search_theta: float = math.radians(30.0)
     min_search_theta: float = math.radians(10.0)
@@ -90,7 +90,7 @@ class LoopParams:
     max_see_through: float = 0.05
     grey_see_through: float = 0.10  # more seen through: rejected; above max_...: in doubt
     # False: weak, slightly seeing-through and inconsistent closures are rejected outright
-    # (the rule before; Intel 0.100 -> 0.051 m with it, experiments/README.md)
+    # (the rule before; Intel 0.100 -> 0.051 m with it, CHANGELOG.md, issue 14)
     doubt: bool = True
     confident_xy: float = 0.3
     confident_theta: float = math.radians(3.0)

@@ -36,7 +36,7 @@ class MapParams:
     small_step: float = 0.1  # ... toward an unreliable one
     max_range: float = 10.0  # landmarks farther than this are not association candidates
     fov: float = 3.141592653589793  # field of view for "predicted in view" (rad)
-    # lifecycle (see fgslam.slam.lifecycle; N and the window: experiments/README.md)
+    # lifecycle (see fgslam.slam.lifecycle; N and the window: CHANGELOG.md, issue 12)
     confirm_sightings: int = 2
     confirm_keyframes: int = 2
     confirm_sigma_m: float | None = None  # sightings constrain a landmark this well (None:

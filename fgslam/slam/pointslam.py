@@ -16,7 +16,7 @@ Odometry noise: the file's step covariances, their variances scaled by ``odometr
 :mod:`~fgslam.slam.point_calibration`: maximum likelihood of the sightings' innovations on
 the own association, alternated with it; nothing of the given association).
 Not the default: on Victoria Park it measured worse than the hand factor 100
-(experiments/README.md).
+(experiments/README.md, real_victoria_park.py; CHANGELOG.md, issue 12).
 """
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ ASSOCIATIONS = ("given", "own")
 # residual pre-gate is loose (the chi-square gate decides). The file's sighting covariances
 # (sigma 0.63 m) and the drift between trees make the 99 % gate reject true matches and the
 # 1-unit ambiguity margin accept close calls: a 99.9 % gate and a margin of 4 (measured,
-# experiments/README.md).
+# CHANGELOG.md, issue 12).
 POINT_MAP_PARAMS = MapParams(
     max_range=100.0, pregate=(0.5, 5.0, 0.6), gate_p=0.999, ambiguity_margin=4.0
 )
