@@ -7,5 +7,5 @@
 - ``devices.raw``, ``devices.replay``: crash-safe raw recordings and their replay
 - ``devices.emulators``: the three devices on pseudo-terminals, with faults
 
-Protocols and formats: ``docs/devices.md``. fgslam events: ``fgslam.ports``.
+Protocols and formats: ``docs/devices.md``. fgslam events: ``fgslam.online.ports``.
 """

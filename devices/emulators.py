@@ -12,7 +12,7 @@ rate the host set on the port (the pty's termios, visible from the master) and, 
 differs from the device's rate, garbles what it sends and ignores what it receives, as a UART
 at the wrong rate would. Faults (:class:`Faults`) are drawn from a seeded generator.
 
-Emulators take plain numbers (no fgslam types): ``fgslam.ports.start_emulators`` feeds them
+Emulators take plain numbers (no fgslam types): ``fgslam.online.ports.start_emulators`` feeds them
 from the simulator.
 """
 

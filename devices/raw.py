@@ -50,7 +50,7 @@ StrPath = str | os.PathLike[str]
 class RawFormatError(ValueError):
     """A raw recording that cannot be read: unreadable, not a raw recording, a bad header or
     a record that cannot be true. The message names the file, the place (header line or
-    record offset) and the cause; ``fgslam.ports`` passes it on as the CLI's UserError."""
+    record offset) and the cause; ``fgslam.online.ports`` passes it on as the CLI's UserError."""
 
 
 def show(value: Any) -> str:

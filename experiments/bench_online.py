@@ -38,10 +38,10 @@ from typing import Any
 import numpy as np
 
 from fgslam.config import load_config
-from fgslam.device_process import DeviceProcess, EmulationSpec
-from fgslam.logfile import LogReader
-from fgslam.online import run_online
-from fgslam.ports import replay_to_log
+from fgslam.io.logfile import LogReader
+from fgslam.online.device_process import DeviceProcess, EmulationSpec
+from fgslam.online.loop import run_online
+from fgslam.online.ports import replay_to_log
 from fgslam.slam.runner import run_slam
 
 CFG = load_config()

@@ -184,7 +184,7 @@ def child(
 
     import fgslam
     from fgslam.config import with_scanmatch
-    from fgslam.readers import open_log
+    from fgslam.io.formats import open_log
     from fgslam.slam import loops
     from fgslam.slam.runner import run_backends
 
@@ -204,7 +204,7 @@ def child(
     sensors = "laser"
     if log == "corridor":  # the simulated corridor (seed 1), fused, the default pipeline
         from fgslam.config import load_config
-        from fgslam.logfile import LogReader
+        from fgslam.io.logfile import LogReader
         from fgslam.sim import simulate_to_log
         from fgslam.sim.world import load_world
 

@@ -24,9 +24,9 @@ from pathlib import Path
 
 import numpy as np
 
-from fgslam import evaluation
 from fgslam.config import load_config
-from fgslam.logfile import LogReader
+from fgslam.evaluation import metrics as evaluation
+from fgslam.io.logfile import LogReader
 from fgslam.sim import simulate_to_log
 from fgslam.sim.world import load_world
 from fgslam.slam.runner import run_backends

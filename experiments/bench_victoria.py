@@ -21,7 +21,7 @@ from pathlib import Path
 import gtsam
 import numpy as np
 
-from fgslam.readers.victoria import VictoriaPark, read_victoria, to_bearing_range
+from fgslam.io.readers.victoria import VictoriaPark, read_victoria, to_bearing_range
 from fgslam.slam.pointslam import run_points
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "victoria_park.txt"

@@ -24,9 +24,9 @@ from pathlib import Path
 
 import numpy as np
 
-from fgslam import evaluation
 from fgslam.choices import CORNER_CHOICES, LASER_CALIBRATION_CHOICES, SONAR_CALIBRATION_CHOICES
 from fgslam.config import load_config, with_options, with_scanmatch
+from fgslam.evaluation import metrics as evaluation
 from fgslam.sim.sensors import SimParams
 from fgslam.sim.simulate import calibration_truth, events, plan_run
 from fgslam.sim.world import load_world

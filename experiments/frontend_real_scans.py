@@ -4,7 +4,7 @@ Run: python experiments/frontend_real_scans.py [--scans 300 1100 1900 2700 3500 
        [--every 10]
 Reads the given scans (0-based indices among the FLASER lines) of
 ``../shared/data/freiburg-079-corrected.log.gz`` (relative to the repository root) with the
-CARMEN reader (fgslam.readers.carmen), and runs the front end's per-scan processing
+CARMEN reader (fgslam.io.readers.carmen), and runs the front end's per-scan processing
 (``FrontEnd.process_scan`` in "laser" mode: segmentation, polar line fits, right-angle corner
 fits) on each with the reader's robot configuration for that laser: n beams over 180 deg (the
 configuration's bearings: first beam at -90 deg), mounted at the robot origin, 1 cm range
@@ -31,7 +31,7 @@ import numpy as np
 
 from fgslam.events import LaserScan
 from fgslam.frontend.pipeline import FrontEnd
-from fgslam.readers.carmen import CarmenLog
+from fgslam.io.readers.carmen import CarmenLog
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
 LOG = DATA / "freiburg-079-corrected.log.gz"

@@ -6,13 +6,13 @@ gives the same inputs) and runs each one in this process through the entry point
 line uses:
 
 - ``carmen``, ``native``, ``ros1``, ``ros2``: ``fgslam convert LOG --out /dev/null``
-  (``fgslam.cli.main``: ``fgslam.readers.open_log``, every event read and written, the
+  (``fgslam.cli.main``: ``fgslam.io.formats.open_log``, every event read and written, the
   reader's summary), with the reader options a user may give (``--tolerant``, ``--strict``,
   ``--timestamps``, ``--carmen-mode``). CARMEN and native logs: text mutants (a field
   replaced by a hostile token, dropped or added; lines repeated, removed, swapped, cut;
   hostile header JSON) and byte mutants (flips, cuts, garbage; some gzipped, some gzip
   streams damaged). Bags (written here with ``rosbags``): byte flips, cuts, overwrites.
-- ``victoria``: ``fgslam.readers.victoria.read_victoria`` and ``to_bearing_range`` of every
+- ``victoria``: ``fgslam.io.readers.victoria.read_victoria`` and ``to_bearing_range`` of every
   sighting (what ``experiments/real_victoria_park.py`` does; there is no command).
 - ``evaluate``: ``fgslam evaluate`` on mutated TUM and relations files
   (``fuzzlib.mutated_eval_inputs``, ``fuzzlib.evaluate_outcome``).
@@ -27,7 +27,7 @@ line uses:
   ``decode_sample``, ``decode_reading``, ``DeviceTime``) fed random and mutated byte streams
   in random chunks, with valid-CRC frames around hostile payloads, hostile sequence numbers
   and device times, line-rate changes and resets; every measurement through
-  ``fgslam.ports.to_event`` and its event through ``fgslam.logfile.format_record`` (as
+  ``fgslam.online.ports.to_event`` and its event through ``fgslam.io.logfile.format_record`` (as
   ``fgslam replay`` writes it).
 - ``raw``: ``fgslam replay`` on mutated raw recordings (``fuzzlib.simulated_recording``,
   ``fuzzlib.mutated_recordings``, ``fuzzlib.replay_outcome``).
@@ -430,7 +430,7 @@ def native_log(path: Path) -> None:
     truth and scans, one scan with its own bearings; META present."""
     from fgslam.config import load_config
     from fgslam.events import LaserScan, OdometryEvent, SonarEcho, SonarReading, TruthPose
-    from fgslam.logfile import LogWriter
+    from fgslam.io.logfile import LogWriter
 
     cfg = load_config()
     cfg = dataclasses.replace(cfg, laser=dataclasses.replace(cfg.laser, n_beams=19))
@@ -549,7 +549,7 @@ def victoria_cases(rng: random.Random, n: int, work: Path) -> Iterator[Case]:
 
 
 def victoria_runner(folder: Path, opts: dict) -> Result:
-    from fgslam.readers.victoria import read_victoria, to_bearing_range
+    from fgslam.io.readers.victoria import read_victoria, to_bearing_range
 
     data = read_victoria(folder / "victoria.txt", tolerant=opts["tolerant"])
     for sightings in data.sightings.values():
@@ -709,6 +709,7 @@ def config_runner(folder: Path, opts: dict) -> Result:
     import tomli_w
 
     from fgslam import config as c
+    from fgslam.scanmatch import MatchParams
     from fgslam.slam.keyframes import KeyframeParams
     from fgslam.slam.loops import LoopParams
     from fgslam.slam.mapping import MapParams
@@ -718,7 +719,7 @@ def config_runner(folder: Path, opts: dict) -> Result:
     tomli_w.dumps(data)
     json.dumps(data, allow_nan=False)
     c.frontend_thresholds(cfg)
-    c.match_params(cfg)
+    MatchParams.from_config(cfg)
     KeyframeParams.from_config(cfg)
     LoopParams.from_config(cfg)
     MapParams.from_config(cfg)
@@ -904,8 +905,8 @@ def device_runner(folder: Path, opts: dict) -> Result:
     from devices.sick import SickReceiver
     from devices.sonar import SonarReceiver
     from fgslam.config import load_config
-    from fgslam.logfile import format_record
-    from fgslam.ports import to_event
+    from fgslam.io.logfile import format_record
+    from fgslam.online.ports import to_event
 
     if not _CFG:
         _CFG.append(load_config())

@@ -34,7 +34,7 @@ from devices.raw import MAGIC, RawRecorder
 from devices.sonar import encode_reading
 from fgslam.config import load_config
 from fgslam.events import LaserScan, OdometryEvent, SonarReading
-from fgslam.ports import SESSION_FILE, SESSION_FORMAT, SESSION_VERSION, laser_distances_cm
+from fgslam.online.ports import SESSION_FILE, SESSION_FORMAT, SESSION_VERSION, laser_distances_cm
 from fgslam.sim.simulate import events, plan_run
 from fgslam.sim.world import load_world
 

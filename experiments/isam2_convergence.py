@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fgslam.readers.victoria import read_victoria
+from fgslam.io.readers.victoria import read_victoria
 from fgslam.slam import pointslam
 from fgslam.slam.graph import BatchSmoother, GraphBackend, X
 

@@ -25,8 +25,8 @@ import math
 import numpy as np
 
 from factors.line import line_residual
-from fgslam import evaluation
 from fgslam.config import load_config, with_scanmatch
+from fgslam.evaluation import metrics as evaluation
 from fgslam.events import TruthPose
 from fgslam.frontend.pipeline import FrontEnd
 from fgslam.sim.scenes import PAPER, ROOM

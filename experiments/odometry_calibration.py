@@ -5,7 +5,8 @@ Run: python experiments/odometry_calibration.py [--max-span 10]
 For intel, freiburg-079 and mit-csail: the relative motions of the benchmark relations of
 at most --max-span s; the odometry's error against them and its covariance under the log's
 derived configuration (the virtual drive's eq 5 model: "before") and under the motion error
-model fitted by maximum likelihood (fgslam.calibrate). The model is fitted on the motions of
+model fitted by maximum likelihood (fgslam.evaluation.calibrate). The model is fitted on the
+motions of
 the first half of the log (by time) and its NEES reported on both halves: on the fitted half
 the mean NEES of a maximum-likelihood fit is 3 by construction, the held-out half is the
 test. NEES: e^T P^-1 e, 3 dof (3 on average, 95 % within [0.22, 9.35] if consistent).
@@ -22,14 +23,14 @@ from scipy.stats import chi2
 from factors.geometry import between_poses as _between
 from factors.geometry import wrap_angles
 from factors.odometry import COVARIANCE_FLOOR
-from fgslam.calibrate import (
+from fgslam.evaluation.calibrate import (
     _nees,
     _samples_and_reference,
     fit_alphas,
     motion_covariances,
     relative_motions,
 )
-from fgslam.dense import _at, odometry_path
+from fgslam.evaluation.dense import _at, odometry_path
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
 LOGS = {

@@ -37,7 +37,6 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from fgslam import evaluation
 from fgslam.choices import (
     CALIBRATION_CHOICES,
     CORNER_CHOICES,
@@ -47,7 +46,8 @@ from fgslam.choices import (
     SONAR_TIMING_CHOICES,
 )
 from fgslam.config import load_config, with_options
-from fgslam.logfile import LogReader
+from fgslam.evaluation import metrics as evaluation
+from fgslam.io.logfile import LogReader
 from fgslam.sim import simulate_to_log
 from fgslam.sim.sensors import SimParams
 from fgslam.sim.simulate import calibration_truth

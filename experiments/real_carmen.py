@@ -3,7 +3,7 @@ against their corrected (GMapping) poses, next to odometry alone.
 
 Run: python experiments/real_carmen.py [--logs intel freiburg-079] [--backends ekf isam2 batch]
        [--max-scans N] [--association jcbb|nn]
-Reads ``../shared/data/<log>-corrected.log.gz`` with fgslam.readers.carmen (odometry rebuilt
+Reads ``../shared/data/<log>-corrected.log.gz`` with fgslam.io.readers.carmen (odometry rebuilt
 as inverse(P_{k-1}) * ODOM_before_k, the corrected poses as the reference trajectory, not
 ground truth), runs the front end in "laser" mode and each backend (EKF alone, on the first
 ``--ekf-max-scans`` scans; iSAM2 and batch share one graph), and prints ATE after SE(2)
@@ -24,9 +24,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from fgslam import evaluation
+from fgslam.evaluation import metrics as evaluation
 from fgslam.events import LaserScan
-from fgslam.readers.carmen import CarmenLog
+from fgslam.io.readers.carmen import CarmenLog
 from fgslam.slam.graph import BackendError
 from fgslam.slam.runner import run_backends
 

@@ -6,12 +6,12 @@ Run: python experiments/real_relations.py [--logs intel mit-csail freiburg-079]
        [--backends ekf isam2 batch] [--max-scans N] [--calibration off|wheels]
        [--laser-calibration off|offset|range] [--line-end-trim K]
        [--corners with-lines|replace-lines|off]
-Reads ``../shared/data/<log>`` with fgslam.readers (corrected logs: odometry rebuilt, the
+Reads ``../shared/data/<log>`` with fgslam.io.readers (corrected logs: odometry rebuilt, the
 corrected poses as reference; mit-csail: a raw log), runs the front end in "laser" mode and
 the backends (iSAM2 and batch share one graph; the EKF alone), and scores the keyframe poses
 with the log's own odometry records filling relation ends between keyframes
-(:func:`fgslam.dense.relations_error_chain`, the benchmark's method). A backend that fails is
-reported as failed, with what it did up to then. Prints one markdown row per run.
+(:func:`fgslam.evaluation.dense.relations_error_chain`, the benchmark's method). A backend that
+fails is reported as failed, with what it did up to then. Prints one markdown row per run.
 """
 
 from __future__ import annotations
@@ -23,11 +23,12 @@ from pathlib import Path
 import numpy as np
 from real_carmen import limited  # the same scan limit as the ATE experiment
 
-from fgslam import dense, evaluation
 from fgslam.choices import CALIBRATION_CHOICES, CORNER_CHOICES, LASER_CALIBRATION_CHOICES
 from fgslam.config import with_options
-from fgslam.readers import open_log
-from fgslam.readers.carmen import odometry_chain
+from fgslam.evaluation import dense
+from fgslam.evaluation import metrics as evaluation
+from fgslam.io.formats import open_log
+from fgslam.io.readers.carmen import odometry_chain
 from fgslam.slam.outputs import ScanSample, laser_points
 from fgslam.slam.runner import run_backends
 

@@ -34,7 +34,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from fgslam.readers.victoria import read_victoria
+from fgslam.io.readers.victoria import read_victoria
 from fgslam.slam.pointslam import (
     POINT_MAP_PARAMS,
     association_agreement,

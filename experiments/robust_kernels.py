@@ -14,7 +14,7 @@ import argparse
 
 import numpy as np
 
-from fgslam import evaluation
+from fgslam.evaluation import metrics as evaluation
 from fgslam.sim.scenes import park_run
 from fgslam.slam import pointslam
 from fgslam.slam.models import ROBUST_KERNELS

@@ -39,9 +39,9 @@ import numpy as np
 from scipy.stats import chi2
 
 from factors.geometry import between_poses, compose_poses
-from fgslam import dense
 from fgslam.config import load_config
-from fgslam.readers.carmen import flaser_scans
+from fgslam.evaluation import dense
+from fgslam.io.readers.carmen import flaser_scans
 from fgslam.scanmatch import MatchParams, Reference, match, scan_points
 from fgslam.sim.sensors import SimParams, laser_scan
 from fgslam.sim.world import load_world

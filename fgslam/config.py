@@ -271,7 +271,7 @@ class ScanMatchConfig:
     - ``loop_closures``: ``on`` or ``off`` (graph backends; an EKF keeps no past poses);
       candidates within ``loop_radius`` m and ``loop_min_travel`` m of path behind;
     - ``match_resolution`` (m): the correlative search's finest grid, 0 derived from the
-      laser (:func:`match_params`);
+      laser (:meth:`fgslam.scanmatch.MatchParams.from_config`);
     - ``model_error_xy`` (m), ``model_error_theta_deg``: the model error every scan match's
       covariance gets on top of its residual-based part (surfaces the two scans sample at
       other places, clutter that is not a line); negative: derived from the laser (half a
@@ -367,22 +367,6 @@ def with_options(cfg: RobotConfig, sections: dict[str, dict[str, Any]] | None) -
     return dataclasses.replace(from_dict(data, "command line"), source=cfg.source)
 
 
-def match_params(cfg: RobotConfig) -> Any:
-    """The scan matcher's parameters for this laser (:meth:`MatchParams.for_laser`)."""
-    from fgslam.scanmatch import MatchParams
-
-    las = cfg.laser
-    step = math.radians(las.fov_deg) / max(las.n_beams - 1, 1)
-    kw = {}
-    if cfg.scanmatch.match_resolution:
-        kw["resolution"] = cfg.scanmatch.match_resolution
-    if cfg.scanmatch.model_error_xy >= 0:
-        kw["floor_xy"] = cfg.scanmatch.model_error_xy
-    if cfg.scanmatch.model_error_theta_deg >= 0:
-        kw["floor_theta"] = math.radians(cfg.scanmatch.model_error_theta_deg)
-    return MatchParams.for_laser(las.sigma_range, step, las.max_range, **kw)
-
-
 # Fields that must be strictly positive; the rest of the numbers must be finite.
 _POSITIVE = {
     "scanmatch.keyframe_distance",
@@ -460,7 +444,7 @@ _MAXIMUM = {
 _MAX_ANY = 1e9
 # rad: the finest beam step a laser may have (0.2 arc-seconds; 360 deg over the most beams,
 # 100000, is 6.3e-5 rad): below it the thresholds derived from the step overflow or divide
-# by zero (frontend_thresholds, match_params)
+# by zero (frontend_thresholds, MatchParams.from_config)
 MIN_BEAM_STEP = 1e-6
 
 

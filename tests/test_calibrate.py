@@ -9,10 +9,10 @@ import pytest
 from readers_helpers import carmen_text
 
 from factors.odometry import OdometryParams, integrate_poses, sample_paths
-from fgslam.calibrate import fit_alphas, motion_covariances
 from fgslam.cli import main
 from fgslam.config import load_config
-from fgslam.readers import open_log
+from fgslam.evaluation.calibrate import fit_alphas, motion_covariances
+from fgslam.io.formats import open_log
 
 
 def test_fit_recovers_the_alphas_of_simulated_errors():

@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 from readers_helpers import carmen_text
 
-from fgslam import evaluation
 from fgslam.cli import main
-from fgslam.logfile import read_log
+from fgslam.evaluation import metrics as evaluation
+from fgslam.io.logfile import read_log
 
 RECORD_TAGS = ("O ", "L ", "S ", "T ")
 
@@ -379,7 +379,7 @@ def test_dev_null_is_written_in_place_never_replaced(tiny_log, capsys):
 def test_replay_config_overrides_the_recorded_one(tmp_path, monkeypatch):
     import dataclasses
 
-    import fgslam.ports as ports
+    import fgslam.online.ports as ports
     from fgslam.config import load_config
 
     rec = load_config()

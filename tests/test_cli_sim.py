@@ -8,7 +8,7 @@ import pytest
 
 from fgslam.cli import main
 from fgslam.events import LaserScan, TruthPose
-from fgslam.logfile import LogReader
+from fgslam.io.logfile import LogReader
 
 
 def test_simulate_is_deterministic_and_plot_log_draws(tmp_path, capsys):

@@ -142,7 +142,7 @@ def test_run_sonar_calibration_option(short_log, tmp_path):
     the speed of sound's relative error after the others, its sigma learned from 25 s of data
     (below 0.8 %, the prior 1 %; measured 0.6 %) and the simulator's draw for the log within
     3 sigma of it."""
-    from fgslam.logfile import LogReader
+    from fgslam.io.logfile import LogReader
 
     truth = LogReader(short_log).meta["sound_speed_bias"]
     out = tmp_path / "sound"

@@ -112,7 +112,7 @@ def test_absurd_values_are_refused(tmp_path, text, msg):
 def test_override_is_key_by_key_on_the_base(tmp_path):
     """A partial file changes only its keys of the given base (a log's configuration)."""
     from fgslam.config import override_config
-    from fgslam.readers.common import derived_config
+    from fgslam.io.readers.common import derived_config
 
     base = derived_config(180, 180.0)  # a CARMEN laser
     cfg = override_config(base, write(tmp_path, "[odometry]\nk_r = 0.2\n"))
@@ -161,7 +161,7 @@ def test_frontend_thresholds_derived_from_another_laser(tmp_path):
     import dataclasses
 
     from fgslam.config import frontend_thresholds
-    from fgslam.readers.common import derived_config
+    from fgslam.io.readers.common import derived_config
 
     cfg = derived_config(181, 180.0, max_range=80.0, sigma_range=0.01)
     assert frontend_thresholds(cfg) == pytest.approx(

@@ -1,5 +1,6 @@
 """The trajectory between keyframes (nearest keyframe composed with odometry) and the
-relations benchmark (fgslam.dense): hand-computed cases, a run's trajectory_dense.tum, the
+relations benchmark (fgslam.evaluation.dense): hand-computed cases, a run's trajectory_dense.tum,
+the
 evaluate command, and the known figures of the shared logs."""
 
 from __future__ import annotations
@@ -12,14 +13,14 @@ from readers_helpers import DATA
 
 from factors.odometry import integrate_poses
 from fgslam.cli import main
-from fgslam.dense import (
+from fgslam.evaluation.dense import (
     dense_poses,
     odometry_path,
     read_relations,
     relations_error,
     write_dense_trajectory,
 )
-from fgslam.evaluation import read_tum
+from fgslam.evaluation.metrics import read_tum
 
 INTEL = DATA / "intel-corrected"
 FREIBURG = DATA / "freiburg-079-corrected"
@@ -93,8 +94,8 @@ def test_known_figures_of_the_corrected_poses():
     """The corrected (GMapping) poses with the logs' odometry records score the check
     figures that come with the benchmark data: intel 0.054 m and freiburg-079 0.058 m (+-0.005);
     the odometry alone 7.4 and 6.5 m."""
-    from fgslam.dense import relations_error_chain
-    from fgslam.readers.carmen import odometry_chain
+    from fgslam.evaluation.dense import relations_error_chain
+    from fgslam.io.readers.carmen import odometry_chain
 
     expect = {INTEL: (0.054, 2983, 7.4), FREIBURG: (0.058, 1685, 6.5)}
     for name, (trans, n, odo) in expect.items():
@@ -116,7 +117,7 @@ def test_chain_poses_hand_computed():
     record r2, scans around it in the file: 0 and 2, nearer 0: (2, 0, 0). End at 2.5 ->
     r3, scan 2: (0, 5) moved 1 m along pi/2: (0, 6, pi/2). A scan without an estimate is
     replaced by its neighbour in the file."""
-    from fgslam.dense import OdometryChain, chain_poses
+    from fgslam.evaluation.dense import OdometryChain, chain_poses
 
     ch = OdometryChain(
         t=np.array([0.0, 0.5, 0.2, 2.0, 2.6]),
@@ -139,7 +140,7 @@ def test_evaluate_with_the_logs_odometry_records(tmp_path, capsys):
     is no log is a one-line error."""
     from readers_helpers import carmen_text, path, rel
 
-    from fgslam.evaluation import write_tum
+    from fgslam.evaluation.metrics import write_tum
 
     log = tmp_path / "room.log"
     text = carmen_text(corrected=True)
@@ -162,7 +163,7 @@ def test_evaluate_with_the_logs_odometry_records(tmp_path, capsys):
 
 
 def test_relation_scan_pairs_match_stamps_and_distance():
-    from fgslam.dense import relation_scan_pairs
+    from fgslam.evaluation.dense import relation_scan_pairs
 
     stamps = np.array([0.0, 0.5, 1.0, 1.5, 2.0])
     rel = np.array(

@@ -19,8 +19,8 @@ from fgslam.cli import main
 from fgslam.config import load_config
 from fgslam.errors import UserError
 from fgslam.events import LaserScan, OdometryEvent, SonarReading
-from fgslam.logfile import read_log
-from fgslam.ports import DevicePorts, replay, replay_to_log, start_emulators, to_event
+from fgslam.io.logfile import read_log
+from fgslam.online.ports import DevicePorts, replay, replay_to_log, start_emulators, to_event
 from fgslam.sim.world import load_world
 
 CFG = load_config()

@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from fgslam import evaluation as ev
 from fgslam.cli import main
+from fgslam.evaluation import metrics as ev
 
 
 def straight(n: int, step: float = 1.0) -> np.ndarray:

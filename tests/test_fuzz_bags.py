@@ -15,8 +15,8 @@ from hypothesis import strategies as st
 from readers_helpers import write_bag
 
 from fgslam.cli import main
-from fgslam.readers.common import ReaderError
-from fgslam.readers.ros import bag_messages
+from fgslam.io.readers.common import ReaderError
+from fgslam.io.readers.ros import bag_messages
 
 pytest.importorskip("rosbags")
 

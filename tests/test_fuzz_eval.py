@@ -22,10 +22,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fgslam import dense, evaluation
 from fgslam.cli import main
-from fgslam.cli.evaluate import load_reference
 from fgslam.errors import EvaluationError, UserError
+from fgslam.evaluation import dense
+from fgslam.evaluation import metrics as evaluation
+from fgslam.evaluation.reference import load_reference
 
 N = 20  # poses of the test trajectory, 0.5 s apart
 
@@ -219,7 +220,7 @@ def test_absurd_truth_pose_in_a_log_is_not_compared(tmp_path, traj, value):
 def test_reference_poses_are_checked_as_a_tum_files(pose):
     """What a reader passes on from a log is held to a TUM file's bounds (the backstop of
     load_reference)."""
-    from fgslam.cli.evaluate import _check_reference
+    from fgslam.evaluation.reference import _check_reference
 
     t, poses = _times(4), _truth(4)
     _check_reference("run.log", t, poses)

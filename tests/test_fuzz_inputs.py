@@ -19,6 +19,7 @@ from hypothesis import strategies as st
 
 from fgslam import config as c
 from fgslam.config import ConfigError, load_config
+from fgslam.scanmatch import MatchParams
 from fgslam.slam.keyframes import KeyframeParams
 from fgslam.slam.loops import LoopParams
 from fgslam.slam.mapping import MapParams
@@ -28,7 +29,7 @@ def _derived(cfg: c.RobotConfig) -> None:
     """What ``fgslam config`` prints and what a run derives from the configuration."""
     tomli_w.dumps(cfg.to_dict())
     c.frontend_thresholds(cfg)
-    c.match_params(cfg)
+    MatchParams.from_config(cfg)
     KeyframeParams.from_config(cfg)
     LoopParams.from_config(cfg)
     MapParams.from_config(cfg)

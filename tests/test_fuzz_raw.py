@@ -27,7 +27,7 @@ from devices.replay import ReplayFile
 from devices.sonar import SonarReceiver, encode_reading
 from fgslam.cli import main
 from fgslam.errors import UserError
-from fgslam.ports import replay, replay_to_log
+from fgslam.online.ports import replay, replay_to_log
 
 FUZZ = settings(deadline=None, max_examples=200, suppress_health_check=[HealthCheck.too_slow])
 NAMES = ("laser", "sonar0", "odometry")

@@ -11,7 +11,8 @@ import pytest
 
 from factors.geometry import between_poses, compose_poses, wrap_angle
 from factors.odometry import relative_pose
-from fgslam.config import load_config, match_params
+from fgslam.config import load_config
+from fgslam.scanmatch import MatchParams
 from fgslam.sim.raycast import raycast
 from fgslam.slam.graph import GraphBackend
 from fgslam.slam.keyframes import KeyframeParams, ScanOdometry
@@ -47,7 +48,7 @@ def _scan(segs, pose, rng, sigma=0.01) -> np.ndarray:
 
 def _mp():
     cfg = load_config()
-    return match_params(cfg)
+    return MatchParams.from_config(cfg)
 
 
 def test_keyframes_by_distance_and_scan_odometry_beats_drifting_wheels():

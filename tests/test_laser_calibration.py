@@ -9,8 +9,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from fgslam import evaluation
 from fgslam.config import ConfigError, from_dict, load_config, with_scanmatch
+from fgslam.evaluation import metrics as evaluation
 from fgslam.sim.scenes import PAPER, ROOM
 from fgslam.sim.sensors import SimParams
 from fgslam.sim.simulate import events, plan_run

@@ -1,4 +1,5 @@
-"""The project's modules import one another without cycles.
+"""The project's modules import one another without cycles, and only downward through the
+layers (docs/design.md, 1).
 
 Every ``import`` and ``from ... import`` in the packages (fgslam, factors, devices) counts:
 at module level, inside functions and under ``if TYPE_CHECKING``, relative ones resolved.
@@ -138,3 +139,83 @@ def test_a_planted_cycle_is_found(tmp_path):
     assert "fgslam.sub.low:4 -> fgslam.top" in describe(graph, found[0])
     (pkg / "sub" / "low.py").write_text("X = 1\n")
     assert cycles(import_graph(tmp_path, ("fgslam",))) == []
+
+
+# The layers, bottom first (docs/design.md, 1). A module imports only modules of its own layer
+# or of a layer below; within a layer, only its own folder or that folder's subfolders.
+LAYERS = (
+    ("factors", "devices"),  # measurement models and device drivers: no fgslam import
+    ("fgslam",),  # the vocabulary at the package's root: config, events, errors, choices
+    ("fgslam.scanmatch",),
+    ("fgslam.frontend",),
+    ("fgslam.io",),
+    ("fgslam.sim",),
+    ("fgslam.evaluation",),
+    ("fgslam.slam",),
+    ("fgslam.online",),
+    ("fgslam.cli", "fgslam.__main__"),
+)
+
+
+def layer_of(module: str, layers=LAYERS) -> int:
+    """Index of the layer holding ``module``: the longest prefix named in ``layers``."""
+    best, found = -1, -1
+    for i, names in enumerate(layers):
+        for name in names:
+            if (module == name or module.startswith(name + ".")) and len(name) > best:
+                best, found = len(name), i
+    if found < 0:
+        raise KeyError(f"{module} is in no layer")
+    return found
+
+
+def folder_of(module: str, graph) -> str:
+    """A package's own name, else its parent package."""
+    is_pkg = any(m.startswith(module + ".") for m in graph)
+    return module if is_pkg else module.rpartition(".")[0]
+
+
+def upward_imports(graph, layers=LAYERS) -> list[str]:
+    """Every import of a higher layer, or within a layer of a module outside the importer's
+    folder and its subfolders (a parent folder's module or a sibling folder's)."""
+    bad = []
+    for v, deps in sorted(graph.items()):
+        lv, fv = layer_of(v, layers), folder_of(v, graph)
+        for w, line in sorted(deps.items()):
+            lw = layer_of(w, layers)
+            inside = w == fv or w.startswith(fv + ".")
+            if lw > lv:
+                bad.append(f"{v}:{line} -> {w} (layer {lw} above {lv})")
+            elif lw == lv and not inside:
+                bad.append(f"{v}:{line} -> {w} (outside {fv}/)")
+    return bad
+
+
+def test_imports_only_downward():
+    graph = import_graph(ROOT)
+    assert {layer_of(m) for m in graph} == set(range(len(LAYERS)))  # every layer is populated
+    bad = upward_imports(graph)
+    assert not bad, "upward imports:\n  " + "\n  ".join(bad)
+
+
+def test_a_planted_upward_import_is_found(tmp_path):
+    """The check itself: a layer importing a higher one, and a subfolder importing its parent
+    folder's module, are reported; the same tree without them has none."""
+    pkg = tmp_path / "fgslam"
+    for d in ("io/readers", "slam"):
+        (pkg / d).mkdir(parents=True)
+    for d in ("", "io", "io/readers", "slam"):
+        (pkg / d / "__init__.py").write_text("")
+    (pkg / "config.py").write_text("")
+    (pkg / "io" / "logfile.py").write_text("from fgslam.io.readers import common\n")
+    (pkg / "io" / "readers" / "common.py").write_text("from fgslam import config\n")
+    (pkg / "slam" / "step.py").write_text("from fgslam.io import logfile\n")
+    layers = (("fgslam",), ("fgslam.io",), ("fgslam.slam",))
+    assert upward_imports(import_graph(tmp_path, ("fgslam",)), layers) == []
+    (pkg / "io" / "readers" / "common.py").write_text("from fgslam.io import logfile\n")
+    (pkg / "config.py").write_text("def f():\n    from fgslam.slam import step\n")
+    bad = upward_imports(import_graph(tmp_path, ("fgslam",)), layers)
+    assert bad == [
+        "fgslam.config:2 -> fgslam.slam.step (layer 2 above 0)",
+        "fgslam.io.readers.common:1 -> fgslam.io.logfile (outside fgslam.io.readers/)",
+    ]

@@ -15,11 +15,11 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from fgslam import logfile
 from fgslam.config import from_dict, load_config
 from fgslam.errors import UserError
 from fgslam.events import LaserScan, OdometryEvent, SonarEcho, SonarReading, TruthPose
-from fgslam.logfile import (
+from fgslam.io import logfile
+from fgslam.io.logfile import (
     LogFormatError,
     LogReader,
     LogWriter,

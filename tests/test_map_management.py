@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 from factors.odometry import Preintegrated
-from fgslam import evaluation
 from fgslam.config import with_scanmatch
 from fgslam.errors import RunWarning
+from fgslam.evaluation import metrics as evaluation
 from fgslam.frontend.features import Feature
 from fgslam.sim.scenes import PAPER, park_run, room_events
 from fgslam.slam import association, step

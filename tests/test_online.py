@@ -1,5 +1,5 @@
 """Online SLAM (issue 6): the incremental pipeline, and emulators -> pty drivers ->
-:func:`fgslam.online.run_online` compared with ``fgslam run`` on the log of the same run;
+:func:`fgslam.online.loop.run_online` compared with ``fgslam run`` on the log of the same run;
 Ctrl-C, a device disconnect, the ``fgslam emulate`` / ``fgslam online`` commands.
 
 Emulated runs are short (25-40 s of the corridor run) at 3x real time, one on a machine
@@ -25,11 +25,11 @@ from devices_helpers import cpu_hogs, wait_until
 from devices.emulators import Faults
 from devices.replay import ReplayFile
 from fgslam.config import load_config
-from fgslam.device_process import DeviceProcess, EmulationSpec
 from fgslam.events import LaserScan, OdometryEvent, SonarReading, TruthPose
-from fgslam.logfile import LogReader
-from fgslam.online import online_main, run_online, source
-from fgslam.ports import laser_distances_cm, replay, replay_to_log, start_emulators
+from fgslam.io.logfile import LogReader
+from fgslam.online.device_process import DeviceProcess, EmulationSpec
+from fgslam.online.loop import online_main, run_online, source
+from fgslam.online.ports import laser_distances_cm, replay, replay_to_log, start_emulators
 from fgslam.sim import simulate_to_log
 from fgslam.sim.scenes import room_events
 from fgslam.sim.world import load_world
@@ -110,7 +110,7 @@ def test_reorder_buffer_puts_late_events_back_within_its_window():
 
 
 # ------------------------------------------------------------------ end to end
-# The emulators and the drivers run in a device process (fgslam.device_process), SLAM in
+# The emulators and the drivers run in a device process (fgslam.online.device_process), SLAM in
 # this one, as ``fgslam online`` runs them: SLAM's load cannot delay the drivers' reads.
 
 

@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 import devices.driver as driver
 from devices.driver import AttentiveTimer, SerialDevice
 from fgslam.events import OdometryEvent
-from fgslam.ordering import ReorderBuffer, SourceMerger, merge_sources
+from fgslam.io.ordering import ReorderBuffer, SourceMerger, merge_sources
 
 NAMES = ["laser", "odometry", "sonar0", "sonar1"]
 

@@ -12,9 +12,9 @@ import pytest
 from matplotlib.image import imread
 from readers_helpers import ray_rect
 
-from fgslam import safeio
 from fgslam.config import Mount, load_config
 from fgslam.events import LaserScan, OdometryEvent
+from fgslam.io import safeio
 from fgslam.slam.compare import describe_run, markdown_table, plot_comparison
 from fgslam.slam.outputs import ScanSample, laser_points, plot_map, write_outputs
 from fgslam.slam.runner import SlamResult

@@ -18,9 +18,9 @@ from collections import Counter
 import numpy as np
 import pytest
 
-from fgslam import evaluation
 from fgslam.cli import main
 from fgslam.errors import UserError
+from fgslam.evaluation import metrics as evaluation
 from fgslam.events import TruthPose
 from fgslam.sim.scenes import room_events
 from fgslam.slam import outputs, runner

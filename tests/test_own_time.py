@@ -171,8 +171,8 @@ def test_slam_with_sonar_at_its_own_time_tracks_the_truth(sensors):
     """iSAM2 on the simulated room with every sonar point (and, sonar only, plane) attached
     at its reading's time: as accurate against the truth as the paper's scan-frame scheme
     (the readings lie within half a scan period of their scan, so the two nearly agree)."""
-    from fgslam import evaluation
     from fgslam.config import with_options
+    from fgslam.evaluation import metrics as evaluation
     from fgslam.sim.scenes import room_events
     from fgslam.slam.runner import run_backends
 

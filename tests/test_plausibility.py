@@ -1,4 +1,4 @@
-"""The plausibility rules every input format shares (fgslam.readers.plausibility;
+"""The plausibility rules every input format shares (fgslam.io.readers.plausibility;
 docs/readers.md, "Plausibility"): laser ranges outside the laser's range, scans with no valid
 beam, odometry beyond the robot's limits, implausible truth, stamps out of order. Each case of
 the fuzz campaign on the native log (negative ranges, scans without a valid beam, an odometry
@@ -18,9 +18,9 @@ from readers_helpers import carmen_text
 from fgslam.cli import main
 from fgslam.config import load_config
 from fgslam.events import LaserScan, OdometryEvent, SonarReading, TruthPose
-from fgslam.logfile import LogWriter
-from fgslam.readers import open_log
-from fgslam.readers.common import ReaderError
+from fgslam.io.formats import open_log
+from fgslam.io.logfile import LogWriter
+from fgslam.io.readers.common import ReaderError
 
 N_BEAMS = 5
 MAX_RANGE = 8.0

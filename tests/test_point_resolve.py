@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from test_point_calibration import park, park_truth
 
-from fgslam.readers.victoria import Sighting, Step, VictoriaPark
+from fgslam.io.readers.victoria import Sighting, Step, VictoriaPark
 from fgslam.slam.pointslam import relabelled, run_points
 
 

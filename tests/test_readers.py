@@ -15,10 +15,10 @@ from readers_helpers import DATA, carmen_text, path, rel, write_bag
 
 from factors.odometry import integrate_poses
 from fgslam.events import LaserScan, OdometryEvent, SonarReading, TruthPose
-from fgslam.readers import open_log, sniff_format
-from fgslam.readers.carmen import CarmenLog, odometry_check
-from fgslam.readers.common import ReaderError, VirtualDrive, derived_config, relative
-from fgslam.readers.victoria import read_victoria, to_bearing_range
+from fgslam.io.formats import open_log, sniff_format
+from fgslam.io.readers.carmen import CarmenLog, odometry_check
+from fgslam.io.readers.common import ReaderError, VirtualDrive, derived_config, relative
+from fgslam.io.readers.victoria import read_victoria, to_bearing_range
 
 INTEL = DATA / "intel-corrected.log.gz"
 FREIBURG = DATA / "freiburg-079-corrected.log.gz"
@@ -135,7 +135,7 @@ def test_carmen_corrected_log(tmp_path):
 def test_flaser_scans_reads_the_raw_scans(tmp_path):
     """The scans of a log as arrays (for experiments): every FLASER in order, its stamp and
     both pose fields; no-return (80 m and beyond) is NaN; ``limit`` stops early."""
-    from fgslam.readers.carmen import flaser_scans
+    from fgslam.io.readers.carmen import flaser_scans
 
     f = tmp_path / "room.log"
     f.write_text(carmen_text(corrected=True))
@@ -460,7 +460,7 @@ def test_ros_bag_without_odometry(tmp_path):
 
 def test_ros_bag_convert_command(bag, tmp_path, capsys):
     from fgslam.cli import main
-    from fgslam.logfile import read_log
+    from fgslam.io.logfile import read_log
 
     out = tmp_path / "bag.log.gz"
     assert main(["convert", str(bag), "--range-topic", "/sonar", "--out", str(out)]) == 0

@@ -1,6 +1,6 @@
 """The clock checks of native fgslam logs and ROS bags (docs/readers.md, "Timestamps: never
 silently wrong"): every defect on a small synthetic log or bag written here, with the same
-rules as CARMEN's (fgslam.readers.sanity; CARMEN's cases are in test_readers_sanity.py)."""
+rules as CARMEN's (fgslam.io.readers.sanity; CARMEN's cases are in test_readers_sanity.py)."""
 
 from __future__ import annotations
 
@@ -15,9 +15,9 @@ from readers_helpers import write_native
 
 from fgslam.cli import main
 from fgslam.events import LaserScan, OdometryEvent, SonarReading, TruthPose
-from fgslam.logfile import LogFormatError, LogReader
-from fgslam.readers import open_log
-from fgslam.readers.sanity import INDEX_PERIOD, common_clock
+from fgslam.io.formats import open_log
+from fgslam.io.logfile import LogFormatError, LogReader
+from fgslam.io.readers.sanity import INDEX_PERIOD, common_clock
 
 UNIX = 1.7e9  # a UNIX-time clock (an online recording, a converted CARMEN log)
 

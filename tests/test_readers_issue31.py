@@ -17,10 +17,10 @@ from factors.odometry import COVARIANCE_FLOOR, OdometryIntegrator, integrate_pos
 from fgslam.cli import build_parser, main
 from fgslam.config import load_config
 from fgslam.events import LaserScan, OdometryEvent
-from fgslam.logfile import LogFormatError
-from fgslam.readers import open_log
-from fgslam.readers.common import ReaderError, derived_config
-from fgslam.readers.sanity import INDEX_PERIOD, OdometryLimits, implausible
+from fgslam.io.formats import open_log
+from fgslam.io.logfile import LogFormatError
+from fgslam.io.readers.common import ReaderError, derived_config
+from fgslam.io.readers.sanity import INDEX_PERIOD, OdometryLimits, implausible
 
 
 def zero_stamps(text: str) -> str:

@@ -1,5 +1,5 @@
 """Timestamps and odometry of foreign logs: every defect of docs/readers.md on a small
-synthetic CARMEN log written here (fgslam.readers.sanity, fgslam.readers.carmen)."""
+synthetic CARMEN log written here (fgslam.io.readers.sanity, fgslam.io.readers.carmen)."""
 
 from __future__ import annotations
 
@@ -13,10 +13,10 @@ from readers_helpers import carmen_text, odometry_at
 
 from fgslam.cli import main
 from fgslam.events import LaserScan, OdometryEvent, TruthPose
-from fgslam.readers import open_log
-from fgslam.readers.carmen import CarmenLog
-from fgslam.readers.common import MAX_SAMPLES, ReaderError
-from fgslam.readers.sanity import INDEX_PERIOD, OdometryLimits, implausible, index_stamps
+from fgslam.io.formats import open_log
+from fgslam.io.readers.carmen import CarmenLog
+from fgslam.io.readers.common import MAX_SAMPLES, ReaderError
+from fgslam.io.readers.sanity import INDEX_PERIOD, OdometryLimits, implausible, index_stamps
 from fgslam.sim.scenes import PAPER
 
 TIMED = ("FLASER", "ODOM")

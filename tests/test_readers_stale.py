@@ -1,4 +1,4 @@
-"""Stale odometry (fgslam.readers.common.StaleOdometryHold): the hold on its own, in ROS bags,
+"""Stale odometry (fgslam.io.readers.common.StaleOdometryHold): the hold on its own, in ROS bags,
 and the same events and notes from a raw CARMEN log and a bag of the same drive (the CARMEN
 cases on the room log are in test_readers_sanity.py)."""
 
@@ -11,9 +11,9 @@ import pytest
 from readers_helpers import bag_drive, fmt, odometry_at, write_bag
 
 from fgslam.events import LaserScan, OdometryEvent, SonarReading, TruthPose
-from fgslam.readers import open_log
-from fgslam.readers.common import StaleOdometryHold, VirtualDrive, derived_config
-from fgslam.readers.sanity import OdometryLimits
+from fgslam.io.formats import open_log
+from fgslam.io.readers.common import StaleOdometryHold, VirtualDrive, derived_config
+from fgslam.io.readers.sanity import OdometryLimits
 
 CFG = derived_config(5)
 MOVE = (0.15, 0.0, 0.0)  # m, m, rad: three samples of 5 cm

@@ -10,8 +10,8 @@ import pytest
 from readers_helpers import DATA, carmen_text
 
 from fgslam.cli import main
-from fgslam.logfile import read_log
-from fgslam.readers.victoria import read_victoria
+from fgslam.io.logfile import read_log
+from fgslam.io.readers.victoria import read_victoria
 from fgslam.sim.scenes import synthetic_park
 from fgslam.slam.pointslam import association_agreement, run_points
 

@@ -19,7 +19,7 @@ from readers_helpers import (
 )
 
 from fgslam.events import LaserScan, OdometryEvent, scan_bearings
-from fgslam.readers import open_log
+from fgslam.io.formats import open_log
 from fgslam.scanmatch import scan_points
 
 DEG = math.pi / 180
@@ -334,7 +334,7 @@ def test_native_log_round_trip_keeps_per_scan_bearings(tmp_path):
     import dataclasses
 
     from fgslam.config import load_config
-    from fgslam.logfile import LogFormatError, LogWriter, read_log
+    from fgslam.io.logfile import LogFormatError, LogWriter, read_log
 
     cfg = load_config()
     cfg = dataclasses.replace(cfg, laser=dataclasses.replace(cfg.laser, n_beams=5))
@@ -377,7 +377,7 @@ def test_convert_and_run_an_interlaced_bag(tmp_path, capsys):
     and fgslam run (iSAM2, laser) uses every one of them."""
     pytest.importorskip("rosbags")
     from fgslam.cli import main
-    from fgslam.logfile import read_log
+    from fgslam.io.logfile import read_log
 
     bag = tmp_path / "i.bag"
     write_bag(bag, [interlaced(k) for k in range(24)], noise=0.005)

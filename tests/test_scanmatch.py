@@ -437,8 +437,8 @@ def test_model_error_floor_on_real_relations():
     at most 1 m apart: the residual-based covariance alone is overconfident on real scans
     (median NEES far above 3 dof's 2.37); with the floor ``for_laser`` derives from the
     sensor (half a grid cell, one beam) it is consistent."""
-    from fgslam.dense import read_relations, relation_scan_pairs
-    from fgslam.readers.carmen import flaser_scans
+    from fgslam.evaluation.dense import read_relations, relation_scan_pairs
+    from fgslam.io.readers.carmen import flaser_scans
 
     scans = flaser_scans(MIT, 700)
     ranges, stamps = scans["ranges"], scans["t"]

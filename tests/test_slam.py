@@ -10,7 +10,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from fgslam import evaluation
+from fgslam.evaluation import metrics as evaluation
 from fgslam.events import LaserScan, OdometryEvent
 from fgslam.frontend.features import End, Feature
 from fgslam.sim.scenes import room_events

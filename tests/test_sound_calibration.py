@@ -14,8 +14,8 @@ import pytest
 from conftest import factor_analytic_jacobians, factor_numeric_jacobians, numeric_jacobian
 
 from factors.point import bearing_range_in_frame, point_factor
-from fgslam import evaluation
 from fgslam.config import ConfigError, from_dict, load_config, with_scanmatch
+from fgslam.evaluation import metrics as evaluation
 from fgslam.frontend.features import OwnTime
 from fgslam.frontend.fusion import fuse, fused_jacobian
 from fgslam.frontend.pipeline import _echo_range_jacobian, _plane

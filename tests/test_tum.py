@@ -11,7 +11,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fgslam import evaluation
+from fgslam.evaluation import metrics as evaluation
 
 _token = st.one_of(
     st.floats(allow_nan=True, allow_infinity=True).map(repr),

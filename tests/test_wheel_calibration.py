@@ -21,8 +21,8 @@ from factors.odometry import (
     preintegrate,
     propagate,
 )
-from fgslam import evaluation
 from fgslam.config import load_config, with_scanmatch
+from fgslam.evaluation import metrics as evaluation
 from fgslam.sim.scenes import PAPER, ROOM
 from fgslam.sim.sensors import SimParams
 from fgslam.sim.simulate import events, plan_run

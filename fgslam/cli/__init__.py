@@ -117,7 +117,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _check_outputs(args: argparse.Namespace) -> None:
     """Refuse an --out that cannot be written or that is one of the inputs, before any work."""
-    from fgslam.safeio import check_output_dir, check_output_file
+    from fgslam.io.safeio import check_output_dir, check_output_file
 
     kind = OUTPUT_KINDS.get(args.command)
     out = getattr(args, "out", None)

@@ -1,5 +1,6 @@
-"""``fgslam calibrate``: its parser and command are :func:`fgslam.calibrate.add_parser` and
-:func:`fgslam.calibrate.calibrate_command`."""
+"""``fgslam calibrate``: its parser and command are
+:func:`fgslam.evaluation.calibrate.add_parser` and
+:func:`fgslam.evaluation.calibrate.calibrate_command`."""
 
 from __future__ import annotations
 
@@ -7,6 +8,6 @@ import argparse
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from fgslam.calibrate import add_parser
+    from fgslam.evaluation.calibrate import add_parser
 
     add_parser(sub)

@@ -93,7 +93,7 @@ def add_reader_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def reader_options(args: argparse.Namespace) -> dict:
-    """Options of the foreign-log readers (fgslam.readers.open_log) from the command line."""
+    """Options of the foreign-log readers (fgslam.io.formats.open_log) from the command line."""
     opts: dict = {
         "tolerant": getattr(args, "tolerant", False),
         "strict": getattr(args, "strict", False),
@@ -111,7 +111,7 @@ def reader_warnings(summary: dict) -> list[str]:
     native log read in record order for want of a usable clock, that)."""
     if "warnings" in summary:
         return list(summary["warnings"])
-    from fgslam.readers.common import clock_warnings
+    from fgslam.io.readers.common import clock_warnings
 
     return clock_warnings(summary.get("timestamps"))
 

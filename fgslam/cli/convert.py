@@ -32,8 +32,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
 
-    from fgslam.logfile import LogWriter
-    from fgslam.readers import open_log
+    from fgslam.io.formats import open_log
+    from fgslam.io.logfile import LogWriter
 
     reader = open_log(args.log, **reader_options(args))
     counts: Counter = Counter()

@@ -67,7 +67,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from fgslam.config import load_config
-    from fgslam.online import StopSignal, emulate_main, emulation_faults
+    from fgslam.online.loop import StopSignal, emulate_main, emulation_faults
 
     cfg = load_config(args.config)
     faults = emulation_faults(

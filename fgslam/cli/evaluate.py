@@ -1,5 +1,5 @@
 """``fgslam evaluate``: a trajectory (TUM) against a reference (TUM, or a log with truth or
-reference poses), with the metrics of :mod:`fgslam.evaluation`."""
+reference poses), with the metrics of :mod:`fgslam.evaluation.metrics`."""
 
 from __future__ import annotations
 
@@ -11,83 +11,9 @@ from typing import Any
 
 import numpy as np
 
-from fgslam import evaluation
 from fgslam.errors import UserError
-from fgslam.events import TruthPose
-
-
-def _looks_like_tum(path: Path) -> bool:
-    try:
-        with open(path, "rb") as f:
-            head = f.read(4096)
-    except OSError as exc:
-        raise UserError(f"{path}: cannot open: {exc.strerror or exc}") from None
-    if head[:2] == b"\x1f\x8b":
-        return False
-    for line in head.decode("utf-8", errors="replace").splitlines():
-        tok = line.split()
-        if not tok or tok[0].startswith("#"):
-            continue
-        try:
-            [float(x) for x in tok]
-        except ValueError:
-            return False
-        return len(tok) == 8
-    return False
-
-
-MAX_HEADING = 1e7  # rad: a log's heading beyond is not one (as the CARMEN reader's poses)
-
-
-def _read_tum(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """A TUM trajectory (:func:`evaluation.read_tum`, stamps in order); UserError naming the
-    file, and the line, for anything it cannot hold."""
-    try:
-        return evaluation.read_tum(path, ordered=True)
-    except (ValueError, OSError) as exc:
-        raise UserError(f"{path}: not a TUM trajectory ({exc})") from None
-
-
-def _check_reference(path: str | Path, t: np.ndarray, poses: np.ndarray) -> None:
-    """A log's truth or reference poses hold what a TUM file may (:func:`evaluation.read_tum`):
-    UserError naming the file and the pose's time for a value that is not finite or not
-    plausible (a position beyond ``evaluation.TUM_MAX_POSITION`` m, a heading beyond
-    :data:`MAX_HEADING` rad)."""
-    top = evaluation.TUM_MAX_POSITION
-    with np.errstate(invalid="ignore"):
-        ok = (np.abs(poses[:, :2]) <= top).all(axis=1) & (np.abs(poses[:, 2]) <= MAX_HEADING)
-    bad = ~(ok & np.isfinite(t))
-    if bad.any():
-        k = int(np.argmax(bad))
-        raise UserError(
-            f"{path}: truth or reference pose at t = {float(t[k])!r} s: "
-            f"({', '.join(repr(float(v)) for v in poses[k])}) is not a pose (finite, "
-            f"positions at most {top:g} m, heading at most {MAX_HEADING:g} rad)"
-        )
-
-
-def load_reference(path: str | Path, **options: Any) -> tuple[np.ndarray, np.ndarray, dict, str]:
-    """Times, poses, true map (or {}) and what the poses are, from a TUM file or a log."""
-    p = Path(path)
-    if p.is_file() and _looks_like_tum(p):
-        t, poses = _read_tum(p)
-        return t, poses, {}, "reference trajectory (TUM)"
-    from fgslam.readers import open_log
-
-    reader = open_log(p, **options)
-    t, poses = [], []
-    last = -np.inf
-    for ev in reader:
-        if isinstance(ev, TruthPose) and ev.t >= last:
-            t.append(ev.t)
-            poses.append((ev.x, ev.y, ev.theta))
-            last = ev.t
-    if len(t) < 2:
-        raise UserError(f"{path}: the log has no truth or reference poses")
-    t_a, poses_a = np.array(t, dtype=float), np.array(poses, dtype=float)
-    _check_reference(path, t_a, poses_a)
-    kind = getattr(reader, "reference_kind", None) or "ground truth"
-    return t_a, poses_a, reader.meta.get("true_map") or {}, kind
+from fgslam.evaluation import metrics as evaluation
+from fgslam.evaluation.reference import load_reference, read_tum_file
 
 
 def _finite_number(v: Any) -> bool:
@@ -134,11 +60,12 @@ def relations_report(
 ) -> dict[str, Any]:
     """The relations metric of a TUM trajectory: with ``log`` (the CARMEN log the run read),
     the trajectory's poses at the log's scans and the log's odometry records
-    (:func:`fgslam.dense.relations_error_chain`, the benchmark's method); without, the
-    trajectory interpolated (:func:`fgslam.dense.relations_error`; right for a dense one)."""
-    from fgslam import dense
+    (:func:`fgslam.evaluation.dense.relations_error_chain`, the benchmark's method); without,
+    the trajectory interpolated (:func:`fgslam.evaluation.dense.relations_error`; right for a
+    dense one)."""
+    from fgslam.evaluation import dense
 
-    t_est, est = _read_tum(traj)
+    t_est, est = read_tum_file(traj)
     if not len(t_est):
         raise UserError(f"{traj}: no poses: no relation can be evaluated")
     try:
@@ -146,13 +73,13 @@ def relations_report(
     except (ValueError, OSError) as exc:
         raise UserError(f"{relations}: not a relations file ({exc})") from None
     if log is not None:
-        from fgslam.readers import sniff_format
+        from fgslam.io.formats import sniff_format
 
         if sniff_format(log) != "carmen":
             raise UserError(f"{log}: --odometry-log takes a CARMEN log")
     try:
         if log is not None:
-            from fgslam.readers.carmen import odometry_chain
+            from fgslam.io.readers.carmen import odometry_chain
 
             chain = odometry_chain(log)
             e, has = dense.estimate_at_scans(chain, t_est, est)
@@ -196,7 +123,7 @@ def evaluate_command(args: argparse.Namespace) -> dict[str, Any]:
     if not args.reference:
         assert rel_rep is not None
         return {"relations": rel_rep, "_text": _relations_text(rel_rep)}
-    t_est, est = _read_tum(traj)
+    t_est, est = read_tum_file(traj)
     t_ref, ref, true_map, kind = load_reference(args.reference)
     covs = None
     if args.covariances:
@@ -297,7 +224,7 @@ def run(args: argparse.Namespace) -> int:
     rep = evaluate_command(args)
     print(rep.pop("_text"))
     if args.out:
-        from fgslam.safeio import write_json
+        from fgslam.io.safeio import write_json
 
         write_json(args.out, rep)
         print(f"wrote {args.out}")

@@ -28,10 +28,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from fgslam.evaluation import write_tum
+    from fgslam.evaluation.metrics import write_tum
     from fgslam.events import TruthPose
-    from fgslam.readers import open_log
-    from fgslam.safeio import atomic_path
+    from fgslam.io.formats import open_log
+    from fgslam.io.safeio import atomic_path
 
     reader = open_log(args.log, **reader_options(args))
     t: list[float] = []

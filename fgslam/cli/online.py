@@ -72,7 +72,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from fgslam.config import load_config, with_options
-    from fgslam.online import StopSignal, device_summary, online_main
+    from fgslam.online.loop import StopSignal, device_summary, online_main
 
     cfg = with_options(load_config(args.config), config_options(args))
     with StopSignal("stopping: processing what has arrived, writing outputs") as sig:

@@ -35,7 +35,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from fgslam.plotting import plot_log
+    from fgslam.evaluation.plotting import plot_log
     from fgslam.sim.world import load_world
 
     world = load_world(args.world) if args.world else None
@@ -55,7 +55,7 @@ def image_path(out: str, log: str) -> str:
     known image suffix; an unknown image format is refused."""
     from matplotlib.backend_bases import FigureCanvasBase
 
-    from fgslam.safeio import is_special
+    from fgslam.io.safeio import is_special
 
     p = Path(out)
     if is_special(p):

@@ -31,7 +31,7 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from fgslam.config import load_config, override_config
-    from fgslam.ports import replay_to_log, session_config
+    from fgslam.online.ports import replay_to_log, session_config
 
     cfg = None
     if args.config:  # key by key over the recorded configuration (or the built-in one)

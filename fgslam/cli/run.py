@@ -56,7 +56,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from fgslam.config import with_options
-    from fgslam.readers import open_log
+    from fgslam.io.formats import open_log
     from fgslam.slam.outputs import write_outputs
     from fgslam.slam.runner import run_slam
 
@@ -80,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
         bar.close()
     extra, notes = _input_notes(reader, tap, [res])
     extra["config_source"] = cfg.source
-    from fgslam.dense import write_dense_trajectory
+    from fgslam.evaluation.dense import write_dense_trajectory
 
     def dense(path: Path) -> int:
         return write_dense_trajectory(

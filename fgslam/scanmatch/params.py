@@ -2,9 +2,14 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from fgslam.config import RobotConfig
 
 
 @dataclass(frozen=True)
@@ -77,3 +82,18 @@ class MatchParams:
         base.setdefault("floor_xy", 0.5 * float(base["resolution"]))
         base.setdefault("floor_theta", abs(float(angular_step)))
         return cls(**base)  # type: ignore[arg-type]
+
+    @classmethod
+    def from_config(cls, cfg: RobotConfig) -> MatchParams:
+        """The matcher for this robot's laser (:meth:`for_laser`), with the ``[scanmatch]``
+        section's ``match_resolution`` and ``model_error_*`` where they are set."""
+        las = cfg.laser
+        step = math.radians(las.fov_deg) / max(las.n_beams - 1, 1)
+        kw = {}
+        if cfg.scanmatch.match_resolution:
+            kw["resolution"] = cfg.scanmatch.match_resolution
+        if cfg.scanmatch.model_error_xy >= 0:
+            kw["floor_xy"] = cfg.scanmatch.model_error_xy
+        if cfg.scanmatch.model_error_theta_deg >= 0:
+            kw["floor_theta"] = math.radians(cfg.scanmatch.model_error_theta_deg)
+        return cls.for_laser(las.sigma_range, step, las.max_range, **kw)

@@ -16,7 +16,7 @@ import math
 import numpy as np
 
 from fgslam.config import load_config
-from fgslam.readers.victoria import Sighting, Step, VictoriaPark
+from fgslam.io.readers.victoria import Sighting, Step, VictoriaPark
 from fgslam.sim.sensors import SimParams
 from fgslam.sim.simulate import events, plan_run
 from fgslam.sim.world import parse_world

@@ -17,9 +17,10 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from fgslam import evaluation, safeio
 from fgslam.config import RobotConfig, check_against_log, override_config, with_options
-from fgslam.readers import open_log
+from fgslam.evaluation import metrics as evaluation
+from fgslam.io import safeio
+from fgslam.io.formats import open_log
 from fgslam.slam.outputs import OutputGuard, ScanSample, write_outputs
 from fgslam.slam.runner import BACKENDS, SENSORS, SlamResult, run_backends
 
@@ -324,7 +325,7 @@ def plot_comparison(results: list[SlamResult], path: Path, world: Any = None) ->
         2, 1, figsize=(14, top_h + 4.0), gridspec_kw={"height_ratios": [top_h, 3.5]}
     )
     if world is not None:
-        from fgslam.plotting import draw_world
+        from fgslam.evaluation.plotting import draw_world
 
         draw_world(ax1, world)
     truth_drawn = False

@@ -28,10 +28,11 @@ import numpy as np
 from matplotlib.patches import Ellipse
 
 from factors.geometry import wrap_angle
-from fgslam import evaluation, safeio
 from fgslam.config import RobotConfig
 from fgslam.errors import EvaluationError, OutputWarning
+from fgslam.evaluation import metrics as evaluation
 from fgslam.events import Event, LaserScan
+from fgslam.io import safeio
 from fgslam.slam.runner import SlamResult
 
 MAX_MAP_POINTS = 150_000  # laser points drawn in map.png at most
@@ -278,7 +279,7 @@ def plot_map(
         ax.plot(points[:, 0], points[:, 1], ".", color="0.35", ms=0.6, mew=0, alpha=0.8)
         ax.plot([], [], ".", color="0.35", ms=3, label="laser points (placed with the estimate)")
     if world is not None:
-        from fgslam.plotting import draw_world
+        from fgslam.evaluation.plotting import draw_world
 
         draw_world(ax, world)
         ax.plot([], [], "k-", lw=1.0, label="world (simulator)")
@@ -458,7 +459,7 @@ class OutputGuard:
 
 def write_trajectory(path: str | Path, res: SlamResult) -> int:
     """trajectory.tum: the final estimate's poses that are finite and within
-    ``evaluation.TUM_MAX_POSITION`` (what :func:`~fgslam.evaluation.read_tum` reads back);
+    ``evaluation.TUM_MAX_POSITION`` (what :func:`~fgslam.evaluation.metrics.read_tum` reads back);
     returns how many poses were left out."""
     t = np.asarray(res.times, dtype=float).reshape(-1)
     p = np.asarray(res.poses, dtype=float).reshape(-1, 3)

@@ -28,7 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import minimize, minimize_scalar
 
-from fgslam.readers.victoria import VictoriaPark
+from fgslam.io.readers.victoria import VictoriaPark
 
 Scales = float | Sequence[float] | NDArray[np.float64]
 

@@ -31,7 +31,7 @@ from numpy.typing import NDArray
 
 from factors.odometry import Preintegrated
 from fgslam.frontend.features import Feature
-from fgslam.readers.victoria import VictoriaPark, to_bearing_range
+from fgslam.io.readers.victoria import VictoriaPark, to_bearing_range
 from fgslam.slam.backend import Backend
 from fgslam.slam.ekf import EkfBackend
 from fgslam.slam.graph import BatchSmoother, GraphBackend

@@ -29,10 +29,11 @@ from numpy.typing import NDArray
 
 from factors.geometry import compose_poses
 from factors.odometry import integrate_poses, preintegrate
-from fgslam.config import RobotConfig, match_params
+from fgslam.config import RobotConfig
 from fgslam.events import Event, OdometryEvent, TruthPose
 from fgslam.frontend.pipeline import FrontEnd
-from fgslam.ordering import REORDER_WINDOW, ReorderBuffer
+from fgslam.io.ordering import REORDER_WINDOW, ReorderBuffer
+from fgslam.scanmatch import MatchParams
 from fgslam.slam import models
 from fgslam.slam.association import METHODS
 from fgslam.slam.backend import Backend
@@ -241,7 +242,7 @@ class SlamPipeline:
             kp = replace(kp, policy="every-scan", odometry="wheels")
             lp = replace(lp, enabled=False)
         self.keyframe_params = kp
-        mp = match_params(cfg)
+        mp = MatchParams.from_config(cfg)
         origin = (cfg.laser.mount.x, cfg.laser.mount.y)
         self.scan_odometry = ScanOdometry(kp, mp, origin, cfg.laser.sigma_time)
         self._between: list[tuple[float, int, NDArray[np.float64]]] = []  # non-keyframes
@@ -618,6 +619,6 @@ def _truth_at(
 ) -> NDArray[np.float64]:
     if not t_ref:
         return np.zeros(3)
-    from fgslam.evaluation import interpolate_poses
+    from fgslam.evaluation.metrics import interpolate_poses
 
     return interpolate_poses(t_ref, poses, [t])[0]

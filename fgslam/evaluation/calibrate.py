@@ -6,7 +6,8 @@ the true pose at t2 in the frame of the pose at t1), or consecutive poses of a r
 TUM file, or a log with truth or reference poses); pairs longer than ``max_span`` s are left
 out (the linearised covariance does not hold over long drifts). For each pair the odometry's
 own relative motion comes from the log's odometry samples (the cumulative odometry path
-interpolated at t1 and t2, :mod:`fgslam.dense`), its error ``e = d_true - d_odo`` (x, y in
+interpolated at t1 and t2, :mod:`fgslam.evaluation.dense`), its error ``e = d_true - d_odo`` (x,
+y in
 the frame of the pose at t1, heading wrapped), and its covariance ``P(alpha)`` from the
 samples in (t1, t2] through :func:`factors.odometry.step_noise`. ``P`` is linear in the
 model's parameters: ``P = floor + sum_i alpha_i C_i`` with ``C_i`` the covariance of unit
@@ -38,7 +39,7 @@ MAX_SPAN = 10.0  # s: longest relative motion used
 
 def _samples_and_reference(log: str, reference: str, options: dict[str, Any]):
     from fgslam.events import OdometryEvent
-    from fgslam.readers import open_log
+    from fgslam.io.formats import open_log
 
     reader = open_log(log, **options)
     o = reader.config.odometry
@@ -59,8 +60,8 @@ def relative_motions(reference: str | Path, **reader_options: Any) -> NDArray[np
     """Rows ``(t1, t2, x, y, yaw)`` from a relations file, or from consecutive poses of a TUM
     file or a log with truth/reference poses."""
     from factors.geometry import between_poses
-    from fgslam.cli.evaluate import load_reference
-    from fgslam.dense import read_relations
+    from fgslam.evaluation.dense import read_relations
+    from fgslam.evaluation.reference import load_reference
 
     p = Path(reference)
     if p.suffix == ".relations":
@@ -157,7 +158,7 @@ def calibrate(
             "odometry: nothing to calibrate against"
         )
     from factors.geometry import between_poses
-    from fgslam.dense import _at, odometry_path
+    from fgslam.evaluation.dense import _at, odometry_path
 
     before = cfg.odometry.params()
     ok, P0, C = motion_covariances(samples, pairs, before)

@@ -11,7 +11,7 @@
   Ranges not finite, outside ``[range_min, range_max)`` (a reading at ``range_max`` is no
   return) or <= 0 are NaN.
 - ``nav_msgs/Odometry`` (``odom_topic``) -> encoder ticks of the virtual differential drive
-  (:class:`~fgslam.readers.common.VirtualDrive`): each message's pose relative to the
+  (:class:`~fgslam.io.readers.common.VirtualDrive`): each message's pose relative to the
   previous message's pose.
 - ``sensor_msgs/Range`` (``range_topics``, optional) -> :class:`~fgslam.events.SonarReading`
   of sonar array i (the i-th topic, mounted at ``range_mounts[i]``, x, y, yaw in rad, default
@@ -23,16 +23,16 @@
 Times are the messages' header stamps, or the bag's record times where the header stamps are
 unsound (``timestamps``: ``auto``, ``header``, ``bag``; recorded in ``meta["timestamps"]``):
 before reading, both clocks are checked per topic with the rules of
-:mod:`fgslam.readers.sanity` (stamped 0, wrapped, quantised scans, junk, backwards beyond
+:mod:`fgslam.io.readers.sanity` (stamped 0, wrapped, quantised scans, junk, backwards beyond
 ``backwards_tolerance``), and the header stamps also for being one clock across the topics
-(:func:`~fgslam.readers.sanity.common_clock`); with neither sound, a one-line
+(:func:`~fgslam.io.readers.sanity.common_clock`); with neither sound, a one-line
 :class:`ReaderError` names each clock's first defect and its topic. Messages with sporadic
 bad stamps are handled as going backwards (below). Odometry messages moving faster than the
-reader's :class:`~fgslam.readers.sanity.OdometryLimits` are skipped and counted, the jump
-dropped (:class:`~fgslam.readers.common.OdometryJumps`), or with ``strict`` an error; gaps in
+reader's :class:`~fgslam.io.readers.sanity.OdometryLimits` are skipped and counted, the jump
+dropped (:class:`~fgslam.io.readers.common.OdometryJumps`), or with ``strict`` an error; gaps in
 the odometry while scans come are counted as holes. Odometry that
 repeats its pose (a frozen stream) and the scans and range readings after it are held and
-spread by :class:`~fgslam.readers.common.StaleOdometryHold` (``stale_spans``,
+spread by :class:`~fgslam.io.readers.common.StaleOdometryHold` (``stale_spans``,
 ``stale_seconds`` in the odometry notes), as in raw CARMEN logs. Topic names are
 chosen by option; left out, the only topic of the right type is taken. A bag without such a
 topic is a :class:`ReaderError` listing the topics it has. Header stamps that go backwards
@@ -59,7 +59,7 @@ from fgslam.events import (
     SonarReading,
     own_bearings,
 )
-from fgslam.readers.common import (
+from fgslam.io.readers.common import (
     OdometryJumps,
     ReaderError,
     Source,
@@ -70,7 +70,7 @@ from fgslam.readers.common import (
     derived_config,
     input_warnings,
 )
-from fgslam.readers.sanity import (
+from fgslam.io.readers.sanity import (
     BACKWARDS_TOLERANCE,
     MAX_STAMP,
     OdometryLimits,
@@ -466,7 +466,7 @@ class RosBag(Source):
     def _choose_clock(self, requested: str, tolerance: float) -> dict[str, Any]:
         """The defects of the header stamps (per topic, and whether the topics share one
         clock) and of the record times (per topic), the clock chosen
-        (:func:`fgslam.readers.sanity.choose_clock`) and the messages with sporadic bad
+        (:func:`fgslam.io.readers.sanity.choose_clock`) and the messages with sporadic bad
         stamps; returns the record of the choice."""
         reports: dict[str, StampReport] = {}
         for clock, col in (("header", 1), ("bag", 2)):

@@ -25,14 +25,14 @@ Two kinds of log (``mode``, detected by default):
   truth.
 
 Odometry increments become encoder ticks of the virtual differential drive of
-:func:`fgslam.readers.common.derived_config` (:class:`~fgslam.readers.common.VirtualDrive`).
+:func:`fgslam.io.readers.common.derived_config` (:class:`~fgslam.io.readers.common.VirtualDrive`).
 Ranges at or beyond ``no_return`` (m, the LMS reports no return as 81.91; a laser whose
 readings pile up just below a lower largest value, e.g. 32.767 or 51.15 m, reports it there:
 probed from the first scans, ``meta["no_return_m"]``), at or beyond a ``ROBOTLASER1``'s
 maximum range, ``inf`` or ``nan`` are no return (NaN), as are the readings of a beam that
 reads one value in every probed scan (a padding field, ``meta["dead_beams"]``). Negative, zero or
 ``-inf`` ranges are no code of the format: they are left to the plausibility rules that
-every format shares (:mod:`fgslam.readers.plausibility`: read as no return, counted, warned,
+every format shares (:mod:`fgslam.io.readers.plausibility`: read as no return, counted, warned,
 refused with ``strict``), as are implausible odometry (judged here on the poses) and records
 stamped out of order (dropped or carried here, noted there).
 
@@ -51,7 +51,7 @@ events are never reordered and their stamps never go backwards.
 **Stale odometry** (raw logs; MIT CSAIL's FLASER odometry fields freeze for 0.6-1.1 s while
 the robot turns): an ``ODOM`` line that repeats the last pose, or a scan whose odometry field
 does (logs without ``ODOM`` lines; such a scan gives no zero sample), and the events after it
-are held and spread by :class:`~fgslam.readers.common.StaleOdometryHold` (``stale_spans``,
+are held and spread by :class:`~fgslam.io.readers.common.StaleOdometryHold` (``stale_spans``,
 ``stale_seconds`` in the odometry notes).
 """
 
@@ -60,15 +60,12 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Iterator
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from fgslam.events import Event, LaserScan, TruthPose, own_bearings
-
-if TYPE_CHECKING:
-    from fgslam.dense import OdometryChain
-from fgslam.readers.common import (
+from fgslam.io.readers.common import (
+    OdometryChain,
     OdometryJumps,
     ReaderError,
     Source,
@@ -81,7 +78,7 @@ from fgslam.readers.common import (
     open_lines,
     relative,
 )
-from fgslam.readers.sanity import (
+from fgslam.io.readers.sanity import (
     BACKWARDS_TOLERANCE,
     MAX_STAMP,
     OdometryLimits,
@@ -288,7 +285,7 @@ class CarmenLog(Source):
     def _clock_pass(self, requested: str, tolerance: float) -> None:
         """One pass over the stamps: the repeats of corrected logs (the ODOM line after a
         scan, stamped 0 or repeating its pose), the defects of both stamp fields, the clock
-        chosen (:func:`fgslam.readers.sanity.choose_clock`) and, unless it is ``ipc``, the
+        chosen (:func:`fgslam.io.readers.sanity.choose_clock`) and, unless it is ``ipc``, the
         stamp of every timed record."""
         lines: list[int] = []
         kinds: list[str] = []
@@ -467,10 +464,10 @@ class CarmenLog(Source):
 
     def events(self) -> Iterator[Event]:
         """The log's events (unchecked: iterating the log applies the plausibility rules,
-        :class:`~fgslam.readers.common.Source`)."""
+        :class:`~fgslam.io.readers.common.Source`)."""
         self._new_pass()
         if self.problems.findings is None:  # read directly: the reader's own rules still note
-            from fgslam.readers.plausibility import Findings
+            from fgslam.io.readers.plausibility import Findings
 
             self.problems.findings = Findings(self.name, self.strict, self.problems.skip)
         drive = VirtualDrive(self.config)
@@ -637,7 +634,7 @@ class CarmenLog(Source):
     def _skip_implausible(self, lineno: int, why: str) -> None:
         """An implausible odometry record: skipped and counted, or (strict) a
         :class:`ReaderError` naming the line (the plausibility findings:
-        :mod:`fgslam.readers.plausibility`)."""
+        :mod:`fgslam.io.readers.plausibility`)."""
         self.problems.findings.note("odometry", why, line=lineno, skipped=True)
         self._odo_notes["implausible"] += 1
 
@@ -646,7 +643,7 @@ class CarmenLog(Source):
     ) -> None:
         """A record stamped before the last event delivered (at ``last`` s), or with a
         sporadic junk stamp (``t`` NaN): dropped or its motion carried, counted, noted as a
-        stamp out of order (:meth:`~fgslam.readers.common.Problems.backward`)."""
+        stamp out of order (:meth:`~fgslam.io.readers.common.Problems.backward`)."""
         if detail is None and math.isfinite(t):
             detail = f"{stream} stamped {t:.6f} s, before the last event delivered ({last:.6f} s)"
         self.problems.backward(stream, detail or f"{stream} with a junk stamp", lineno)
@@ -714,15 +711,14 @@ def flaser_scans(path: StrPath, limit: int | None = None) -> dict[str, np.ndarra
 
 def odometry_chain(path: StrPath, mode: str = "auto") -> OdometryChain:
     """The log's odometry record by record in file order, for the relations benchmark
-    (:class:`fgslam.dense.OdometryChain`): every scan and ``ODOM`` line with its own stamp and
+    (:class:`fgslam.io.readers.common.OdometryChain`): every scan and ``ODOM`` line with its
+    own stamp and
     the cumulative raw odometry at it (corrected logs: each ``ODOM`` line's increment over
     the line before it within its scan interval, the lines restarting from the scan's
     corrected pose; raw logs: the ``ODOM`` poses, or without them the scans' odometry
     fields), and the scans' corrected (reference) poses. File order, not stamps, orders the
     chain: the stamps of some records go backwards (Intel), their order in the file does
     not."""
-    from fgslam.dense import OdometryChain
-
     log = CarmenLog(path, mode=mode, tolerant=True)
     corrected = log.mode == "corrected"
     rec_t: list[float] = []

@@ -51,8 +51,8 @@ from devices.sonar import SonarArray, SonarFrame
 from fgslam.config import RobotConfig, from_dict, load_config
 from fgslam.errors import UserError
 from fgslam.events import Event, LaserScan, OdometryEvent, SonarEcho, SonarReading, TruthPose
-from fgslam.logfile import LogWriter
-from fgslam.ordering import merge_sources
+from fgslam.io.logfile import LogWriter
+from fgslam.io.ordering import merge_sources
 from fgslam.sim.sensors import SimParams
 from fgslam.sim.simulate import Run, events, plan_run
 from fgslam.sim.world import World
@@ -606,7 +606,7 @@ def replay(
     raw_dir: str | Path, cfg: RobotConfig | None = None, result: ReplayResult | None = None
 ) -> Iterator[Event]:
     """The fgslam events of a raw directory, decoded by the drivers' receivers and merged by
-    device time (:func:`fgslam.ordering.merge_sources`, the merge the online run applies):
+    device time (:func:`fgslam.io.ordering.merge_sources`, the merge the online run applies):
     the same every time, and the same order as the online run that made the recording.
     ``cfg`` defaults to the recorded configuration (else the default one). ``result``, if
     given, is filled in as events go (counts, and per file its counters and damage at the

@@ -1,4 +1,4 @@
-"""Online SLAM: events from the devices (:class:`fgslam.ports.DevicePorts`) into the
+"""Online SLAM: events from the devices (:class:`fgslam.online.ports.DevicePorts`) into the
 incremental pipeline (:class:`fgslam.slam.runner.SlamPipeline`) as they arrive.
 
 :func:`run_online` is what ``fgslam online`` runs: it takes events from the ports' queue,
@@ -12,7 +12,7 @@ Order. The ports deliver events in arrival order: per device in time order, acro
 interleaved as the host's threads happened to run (a laser scan, stamped when its first byte
 left the scanner, arrives after the sonar and odometry of its transmission time, 0.21 s at
 38400 baud; a starved driver thread delivers seconds of events at once). The events are
-merged by device time (:class:`fgslam.ordering.SourceMerger`, the merge a replay of the
+merged by device time (:class:`fgslam.io.ordering.SourceMerger`, the merge a replay of the
 recording applies), so that what the SLAM pipeline sees does not depend on the host's speed
 or load: a host that cannot keep up lags (reported), it never drops or reorders data. Wall
 time only decides when a device is silent (disconnected, or its driver waited
@@ -38,11 +38,11 @@ from typing import Any
 
 from devices.emulators import Faults
 from fgslam.config import RobotConfig
-from fgslam.device_process import DeviceProcess
 from fgslam.errors import UserError
 from fgslam.events import Event, SonarReading
-from fgslam.ordering import REORDER_WINDOW, SourceMerger
-from fgslam.ports import LASER, ODOMETRY, DevicePorts, sonar_name, start_emulators
+from fgslam.io.ordering import REORDER_WINDOW, SourceMerger
+from fgslam.online.device_process import DeviceProcess
+from fgslam.online.ports import LASER, ODOMETRY, DevicePorts, sonar_name, start_emulators
 from fgslam.slam.runner import SlamPipeline, SlamResult
 
 STATUS_INTERVAL = 0.25  # wall s between status updates
@@ -98,7 +98,7 @@ def run_online(
 ) -> OnlineResult:
     """Run the front end and ``backend`` on the events of started ``ports`` as they come.
 
-    Events are merged by device time (:class:`fgslam.ordering.SourceMerger`): an event goes
+    Events are merged by device time (:class:`fgslam.io.ordering.SourceMerger`): an event goes
     on once every device has delivered one as late, so the order, and the map, do not depend
     on how fast the host is. A device is not waited for while it is disconnected or its
     driver has waited ``silent_after`` s (attentive time) without data, and only when every
@@ -282,7 +282,7 @@ def emulation_faults(
     disconnects: list[str] | tuple[str, ...] = (),
     seed: int = 0,
 ) -> dict[str, Faults] | None:
-    """Faults per device for :func:`fgslam.ports.start_emulators` (None: none at all)."""
+    """Faults per device for :func:`fgslam.online.ports.start_emulators` (None: none at all)."""
     names = [LASER, *(sonar_name(i) for i in range(len(cfg.sonar.arrays))), ODOMETRY]
     for name, p in (("noise", noise), ("drop", drop), ("flip", flip)):
         if not 0.0 <= p <= 1.0:
@@ -417,7 +417,7 @@ def open_ports(
     meta: dict[str, Any] | None = None,
 ) -> DeviceProcess:
     """The devices for the ``fgslam online`` options, driven in a process of their own
-    (:class:`fgslam.device_process.DeviceProcess`: SLAM's load cannot delay their reads
+    (:class:`fgslam.online.device_process.DeviceProcess`: SLAM's load cannot delay their reads
     and timestamps), with clear errors for ports that do not exist."""
     if not speed > 0:
         raise UserError(f"--speed must be positive, got {speed}")

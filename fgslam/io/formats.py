@@ -1,13 +1,12 @@
-"""Readers of foreign logs into fgslam's event stream (docs/readers.md).
+"""Which reader reads a file: :func:`sniff_format` and :func:`open_log`, which returns something
+that iterates events and has ``config``, ``world``, ``meta`` (and, for foreign logs,
+``reference_kind`` and ``problems``):
 
-:func:`open_log` sniffs the format and returns something that iterates events and has
-``config``, ``world``, ``meta`` (and, for foreign logs, ``reference_kind`` and ``problems``):
+- native fgslam logs (:class:`fgslam.io.logfile.LogReader`);
+- CARMEN logs (:class:`fgslam.io.readers.carmen.CarmenLog`);
+- ROS 1 / ROS 2 bags (:class:`fgslam.io.readers.ros.RosBag`, needs ``rosbags``).
 
-- native fgslam logs (:class:`fgslam.logfile.LogReader`);
-- CARMEN logs (:class:`fgslam.readers.carmen.CarmenLog`);
-- ROS 1 / ROS 2 bags (:class:`fgslam.readers.ros.RosBag`, needs ``rosbags``).
-
-The Victoria Park text format is not a sensor log: :func:`fgslam.readers.victoria.read_victoria`
+The Victoria Park text format is not a sensor log: :func:`fgslam.io.readers.victoria.read_victoria`
 and :mod:`fgslam.slam.pointslam`.
 """
 
@@ -16,8 +15,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from fgslam.readers.common import ReaderError, StrPath, head_text
-from fgslam.readers.sanity import BACKWARDS_TOLERANCE, INDEX_PERIOD, NoUsableClock
+from fgslam.io.readers.common import ReaderError, StrPath, head_text
+from fgslam.io.readers.sanity import BACKWARDS_TOLERANCE, INDEX_PERIOD, NoUsableClock
 
 FORMATS = ("fgslam", "carmen", "ros", "victoria")
 
@@ -26,7 +25,7 @@ CARMEN_TAGS = ("FLASER", "ROBOTLASER1", "ODOM", "PARAM", "RLASER", "TRUEPOS", "S
 
 def sniff_format(path: StrPath) -> str:
     """One of :data:`FORMATS`, from the file's first bytes (gzip looked through)."""
-    from fgslam.readers.ros import is_bag
+    from fgslam.io.readers.ros import is_bag
 
     p = Path(path)
     if not p.exists():
@@ -58,14 +57,14 @@ def open_log(path: StrPath, format: str | None = None, **options: Any):
     Every format's clock is checked (docs/readers.md, "Timestamps"): a CARMEN or native log
     without a usable clock is read in record order (``index``) with a warning, refused with
     ``strict``. The events of native and CARMEN logs go through the same plausibility rules
-    (:mod:`fgslam.readers.plausibility`: laser ranges out of range, scans without a valid
+    (:mod:`fgslam.io.readers.plausibility`: laser ranges out of range, scans without a valid
     beam, implausible odometry, implausible truth, stamps out of order), each kind counted
     and warned once, an error with ``strict``."""
     fmt = format or sniff_format(path)
     if fmt == "fgslam":
         return _open_native(path, options)
     if fmt == "carmen":
-        from fgslam.readers.carmen import CarmenLog
+        from fgslam.io.readers.carmen import CarmenLog
 
         keys = (
             "mode",
@@ -79,7 +78,7 @@ def open_log(path: StrPath, format: str | None = None, **options: Any):
         )
         return CarmenLog(path, **{k: v for k, v in options.items() if k in keys})
     if fmt == "ros":
-        from fgslam.readers.ros import RosBag
+        from fgslam.io.readers.ros import RosBag
 
         keys = (
             "scan_topic",
@@ -104,17 +103,17 @@ def open_log(path: StrPath, format: str | None = None, **options: Any):
 
 
 def _open_native(path: StrPath, options: dict[str, Any]):
-    """A native log (:class:`fgslam.logfile.LogReader`) with its clock checked and its events
+    """A native log (:class:`fgslam.io.logfile.LogReader`) with its clock checked and its events
     through the plausibility rules; without a usable clock (``timestamps`` auto) it is read
     in record order (``index``) unless ``strict``, the reason in ``clock_record["fallback"]``
     and ``["clock"]``."""
-    from fgslam.logfile import LogFormatError, LogReader
+    from fgslam.io.logfile import LogFormatError, LogReader
 
     timestamps = options.get("timestamps") or "auto"
     kw = {
         "tolerant": bool(options.get("tolerant", False)),
         "backwards_tolerance": options.get("backwards_tolerance", BACKWARDS_TOLERANCE),
-        "checks": True,  # the plausibility rules (fgslam.readers.plausibility)
+        "checks": True,  # the plausibility rules (fgslam.io.readers.plausibility)
         "strict": bool(options.get("strict", False)),
         "limits": options.get("limits"),
     }

@@ -6,8 +6,8 @@ read that completed it - is stamped late by as much: on a loaded host, seconds o
 6x emulation, enough to shred the map. In their own process the drivers wake when their bytes
 arrive, whatever SLAM is doing, and the stamps no longer depend on the SLAM process's load.
 
-:class:`DeviceProcess` has the interface :func:`fgslam.online.run_online` uses of
-:class:`fgslam.ports.DevicePorts` (``names``, ``clock``, ``poll``, ``drain``, ``status``,
+:class:`DeviceProcess` has the interface :func:`fgslam.online.loop.run_online` uses of
+:class:`fgslam.online.ports.DevicePorts` (``names``, ``clock``, ``poll``, ``drain``, ``status``,
 ``errors``, ``wait_connected``, context manager). The child sends, in one ordered pipe, the
 events in each device's order and the silence snapshots of :meth:`DevicePorts.poll`, so the
 snapshots keep their meaning (every event delivered before a snapshot comes before it), plus
@@ -45,7 +45,7 @@ DEVICE_NICE = -10  # the device process's priority where the system allows it (r
 
 @dataclass(frozen=True)
 class EmulationSpec:
-    """Emulated devices to start in the device process (``fgslam.ports.start_emulators``):
+    """Emulated devices to start in the device process (``fgslam.online.ports.start_emulators``):
     the simulated run of ``world`` with ``seed`` for ``duration`` s (None: the whole run),
     with ``faults`` by device name; the playback starts once ``lead`` s of the run are
     computed (inf: all, so that the emulators keep time on a loaded host)."""
@@ -77,7 +77,7 @@ class _Spec:
 
 def _child(conn: Any, spec: _Spec, stop: threading.Event) -> None:
     """The device process: drivers (and emulators), events and snapshots into ``conn``."""
-    from fgslam.ports import DevicePorts, start_emulators
+    from fgslam.online.ports import DevicePorts, start_emulators
 
     def send(msg: tuple) -> None:
         conn.send(msg)  # BrokenPipeError: the parent is gone, and so are we
@@ -188,7 +188,7 @@ def _child(conn: Any, spec: _Spec, stop: threading.Event) -> None:
 class DeviceProcess:
     """The robot's devices (or an emulation of them) driven in a child process.
 
-    Arguments as for :class:`fgslam.ports.DevicePorts` (``speed`` instead of a clock), or
+    Arguments as for :class:`fgslam.online.ports.DevicePorts` (``speed`` instead of a clock), or
     ``emulation`` to start emulated devices in the child and drive those. :meth:`start`
     raises UserError for what the drivers refuse (a port that is missing, ...).
     After :meth:`close`, :attr:`emulation` holds the emulation's final state (``done``,
@@ -257,7 +257,7 @@ class DeviceProcess:
         r_ctl, w_ctl = os.pipe()
         try:
             self._proc = subprocess.Popen(
-                [sys.executable, "-m", "fgslam.device_process", str(w_msg), str(r_ctl)],
+                [sys.executable, "-m", "fgslam.online.device_process", str(w_msg), str(r_ctl)],
                 pass_fds=(w_msg, r_ctl),
                 stdin=subprocess.DEVNULL,
                 stdout=subprocess.DEVNULL,
@@ -391,7 +391,7 @@ def raise_priority(nice: int = DEVICE_NICE) -> int:
 
 
 def _main(argv: list[str]) -> None:
-    """Entry of the device process: ``python -m fgslam.device_process MSG_FD CTL_FD``. The
+    """Entry of the device process: ``python -m fgslam.online.device_process MSG_FD CTL_FD``. The
     control pipe brings the spec, then "stop" - or end of file when the parent is gone
     (even killed), which stops the drivers and closes the recording too."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle

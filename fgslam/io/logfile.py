@@ -39,13 +39,13 @@ from fgslam.events import (
     SonarReading,
     TruthPose,
 )
-from fgslam.readers.sanity import (
+from fgslam.io.readers.sanity import (
     BACKWARDS_TOLERANCE,
     choose_clock,
     index_stamps,
     stream_defects,
 )
-from fgslam.safeio import is_special, temp_path
+from fgslam.io.safeio import is_special, temp_path
 
 FORMAT_NAME = "FGSLAM-LOG"
 FORMAT_VERSION = 2  # written; 2 added a scan's own bearings to the laser record
@@ -440,7 +440,7 @@ class LogReader:
     ``timestamps`` checks the log's clock before reading (docs/readers.md, "Timestamps"):
     ``None`` (default) does not; ``"auto"`` refuses a log whose stamps are stamped 0,
     wrapped, quantised, junk or going backwards by more than ``backwards_tolerance`` s
-    (:func:`fgslam.readers.sanity.stream_defects`) with a one-line :class:`LogFormatError`
+    (:func:`fgslam.io.readers.sanity.stream_defects`) with a one-line :class:`LogFormatError`
     naming the defect and its first line, drops the records with sporadic bad stamps
     (counted in ``backwards``; an odometry record's ticks are added to the next one);
     ``"log"`` uses the stamps as they are whatever their defects; ``"index"`` stamps scan k
@@ -450,7 +450,7 @@ class LogReader:
 
     ``checks`` applies the plausibility rules to the events (laser ranges, scans without a
     valid beam, odometry beyond ``limits``, implausible truth, stamps out of order:
-    :mod:`fgslam.readers.plausibility`), what they find in ``findings`` and
+    :mod:`fgslam.io.readers.plausibility`), what they find in ``findings`` and
     ``summary()["plausibility"]``, one warning per kind in ``summary()["warnings"]``;
     ``strict`` makes the first finding an error naming the line (and a record with a
     sporadic bad stamp, otherwise dropped, too). ``LogReader(path)`` alone checks nothing.
@@ -496,7 +496,7 @@ class LogReader:
             raise
         self._events = self._iter_events()
         if checks:
-            from fgslam.readers.plausibility import Findings, Rules, check_events
+            from fgslam.io.readers.plausibility import Findings, Rules, check_events
 
             rules = Rules.of(self.config, limits, clock=self.clock != "index")
             order = {"order": "passed on as stamped (the pipeline puts them back in order)"}
@@ -618,7 +618,7 @@ class LogReader:
         if self.clock_record is not None:
             out["timestamps"] = self.clock_record
         if self.findings is not None:
-            from fgslam.readers.common import clock_warnings
+            from fgslam.io.readers.common import clock_warnings
 
             out["plausibility"] = self.findings.summary()
             out["warnings"] = clock_warnings(self.clock_record) + self.findings.warnings()
@@ -628,7 +628,7 @@ class LogReader:
 
     def _check_clock(self, requested: str, tolerance: float) -> None:
         """One pass over the records' stamps (tag and stamp only): the defects of the log's
-        clock per stream, the clock chosen (:func:`fgslam.readers.sanity.choose_clock`), the
+        clock per stream, the clock chosen (:func:`fgslam.io.readers.sanity.choose_clock`), the
         records with sporadic bad stamps, and with ``index`` every record's stamp."""
         if requested not in CLOCKS:
             raise LogFormatError(

@@ -14,7 +14,6 @@ World frame, poses (x, y, theta) in m and rad, times in s.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +21,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from factors.geometry import between_poses, compose_poses, wrap_angles
 from factors.odometry import integrate_poses
-from fgslam.evaluation import numeric_rows
+from fgslam.evaluation.metrics import numeric_rows
+from fgslam.io.readers.common import OdometryChain
 
 
 def odometry_path(samples: ArrayLike, wheelbase: float) -> tuple[NDArray, NDArray]:
@@ -193,10 +193,10 @@ def write_dense_trajectory(
     wheelbase: float,
 ) -> int:
     """Write the trajectory at every odometry sample and keyframe time (TUM, see
-    :func:`fgslam.evaluation.write_tum`) from keyframe poses and odometry samples ``(t, L_r,
+    :func:`fgslam.evaluation.metrics.write_tum`) from keyframe poses and odometry samples ``(t, L_r,
     L_l)``; returns the number of poses written."""
-    from fgslam.evaluation import write_tum
-    from fgslam.safeio import atomic_path
+    from fgslam.evaluation.metrics import write_tum
+    from fgslam.io.safeio import atomic_path
 
     ot, op = odometry_path(samples, wheelbase)
     t = dense_times(kf_t, ot)
@@ -254,26 +254,6 @@ def _metrics(d: NDArray, used: NDArray, n: int) -> dict:
         "rot_max_deg": float(rot.max()),
         "rot_rmse_deg": float(math.sqrt(np.mean(rot**2))),
     }
-
-
-@dataclass
-class OdometryChain:
-    """A log's odometry records in file order (:func:`fgslam.readers.carmen.odometry_chain`):
-    each record's stamp ``t`` (s), the index of the scan at or before it in the file
-    (``scan``, -1 before the first), whether it is a scan (``is_scan``), the cumulative
-    odometry at it (``poses``, heading unwrapped), and the scans' stamps and reference
-    poses (``scan_t``, ``scan_poses``)."""
-
-    t: NDArray[np.float64]
-    scan: NDArray[np.int64]
-    is_scan: NDArray[np.bool_]
-    poses: NDArray[np.float64]
-    scan_t: NDArray[np.float64]
-    scan_poses: NDArray[np.float64]
-
-    def scan_records(self) -> NDArray[np.int64]:
-        """Record index of each scan."""
-        return np.flatnonzero(self.is_scan)
 
 
 def chain_poses(

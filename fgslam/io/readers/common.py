@@ -20,13 +20,14 @@ from os import PathLike
 from typing import IO, Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from fgslam.config import Mount, RobotConfig, load_config
 from fgslam.errors import ReaderError
 from fgslam.events import Event, OdometryEvent
 from fgslam.frontend.fits import RESIDUAL_TEST
-from fgslam.readers.plausibility import Findings, Rules, check_events
-from fgslam.readers.sanity import INDEX_PERIOD, OdometryLimits, implausible, usage
+from fgslam.io.readers.plausibility import Findings, Rules, check_events
+from fgslam.io.readers.sanity import INDEX_PERIOD, OdometryLimits, implausible, usage
 
 StrPath = str | PathLike[str]
 Increment = tuple[float, float, float] | np.ndarray  # (dx m, dy m, dtheta rad)
@@ -62,7 +63,7 @@ class Problems:
         self.backwards: Counter = Counter()
         self.problems: list[str] = []
         self.notes: dict[str, Any] = {}  # e.g. "timestamps", "odometry" (docs/readers.md)
-        # the plausibility findings of the current pass (fgslam.readers.plausibility.Findings)
+        # the plausibility findings of the current pass (fgslam.io.readers.plausibility.Findings)
         self.findings: Any = None
 
     @property
@@ -84,7 +85,7 @@ class Problems:
     def backward(self, stream: str, detail: str, line: int | None = None) -> None:
         """A record of ``stream`` stamped before the last one delivered (``detail`` names it),
         dropped or its motion carried by the reader: counted in ``backwards`` and noted as a
-        stamp out of order (:mod:`fgslam.readers.plausibility`; with ``--strict`` an
+        stamp out of order (:mod:`fgslam.io.readers.plausibility`; with ``--strict`` an
         error)."""
         if self.findings is not None:
             self.findings.note("order", detail, line=line)
@@ -300,7 +301,7 @@ class StaleOdometryHold:
     up to 85 deg in one record). Read as it is, that is "no motion" with full confidence and
     then the whole motion in one scan interval. So an odometry record that repeats the last
     pose (a zero increment) is held while the last change lies at most ``stale`` s back
-    (:class:`~fgslam.readers.sanity.OdometryLimits`), and so are the events after it (scans,
+    (:class:`~fgslam.io.readers.sanity.OdometryLimits`), and so are the events after it (scans,
     sonar readings):
 
     - when the odometry moves again, its increment is spread evenly over the span since the
@@ -399,11 +400,11 @@ class StaleOdometryHold:
 class OdometryJumps:
     """Implausible odometry in a stream of poses (x m, y m, theta rad) with stamps (s): what
     :meth:`step` returns is the increment to deliver, in the frame of the last pose used, or
-    None for a pose skipped as implausible (:func:`fgslam.readers.sanity.implausible`).
+    None for a pose skipped as implausible (:func:`fgslam.io.readers.sanity.implausible`).
 
     A jump is dropped, never carried into the motion: the pose after a skipped one is taken
     relative to whichever of the last good pose and the skipped pose it lies nearer to, by
-    the fraction of the plausible motion it takes (:func:`fgslam.readers.sanity.usage`).
+    the fraction of the plausible motion it takes (:func:`fgslam.io.readers.sanity.usage`).
     Nearer the last good pose (a spike), the odometry continues from it; nearer the skipped
     pose (the odometry jumped and stayed, as ``intel.orig.bag``'s /odom does twice), it
     continues from the skipped pose (counted as ``rebased``): in both cases the jump itself
@@ -461,7 +462,7 @@ MIN_SCANS = 10  # fewer scans than this: "almost nothing to process"
 
 def clock_warnings(clock: dict[str, Any] | None) -> list[str]:
     """The one-line warning of a log read in record order for want of a usable clock
-    (``clock``: the record of :func:`fgslam.readers.sanity.choose_clock`), or none."""
+    (``clock``: the record of :func:`fgslam.io.readers.sanity.choose_clock`), or none."""
     if not clock or not clock.get("fallback"):
         return []
     return [
@@ -481,7 +482,7 @@ def input_warnings(
     mostly holes, implausible odometry skipped (``odometry``: the reader's odometry notes;
     ``implausible`` False: the reader notes those in the plausibility findings, which word
     the warning), or no usable clock (``clock``: the record of
-    :func:`fgslam.readers.sanity.choose_clock`), for the console and ``report.json``."""
+    :func:`fgslam.io.readers.sanity.choose_clock`), for the console and ``report.json``."""
     out = clock_warnings(clock)
     if scans < MIN_SCANS:
         out.append(f"only {scans} laser scans: almost nothing to process")
@@ -507,10 +508,10 @@ class Source:
     """A readable log: ``config``, ``world``, ``meta``, ``reference_kind`` (``"ground truth"``,
     ``"reference"`` or None: what the TruthPose events are), and events by iteration;
     ``problems`` counts what was skipped. The attributes ``skipped`` and ``skipped_by_reason``
-    mirror :class:`fgslam.logfile.LogReader`.
+    mirror :class:`fgslam.io.logfile.LogReader`.
 
     A reader implements :meth:`events`; iterating the source passes them through the
-    plausibility rules (:func:`fgslam.readers.plausibility.check_events`, with the reader's
+    plausibility rules (:func:`fgslam.io.readers.plausibility.check_events`, with the reader's
     configuration, ``limits`` and ``clock``), the findings of the pass in
     ``problems.findings`` (with ``strict`` the first is an error)."""
 
@@ -554,3 +555,23 @@ class Source:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+@dataclasses.dataclass
+class OdometryChain:
+    """A log's odometry records in file order (:func:`fgslam.io.readers.carmen.odometry_chain`):
+    each record's stamp ``t`` (s), the index of the scan at or before it in the file
+    (``scan``, -1 before the first), whether it is a scan (``is_scan``), the cumulative
+    odometry at it (``poses``, heading unwrapped), and the scans' stamps and reference
+    poses (``scan_t``, ``scan_poses``)."""
+
+    t: NDArray[np.float64]
+    scan: NDArray[np.int64]
+    is_scan: NDArray[np.bool_]
+    poses: NDArray[np.float64]
+    scan_t: NDArray[np.float64]
+    scan_poses: NDArray[np.float64]
+
+    def scan_records(self) -> NDArray[np.int64]:
+        """Record index of each scan."""
+        return np.flatnonzero(self.is_scan)

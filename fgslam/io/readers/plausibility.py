@@ -2,7 +2,7 @@
 logs, CARMEN logs, ROS bags; docs/readers.md, "Plausibility").
 
 :class:`Rules` states them, with limits from the robot's configuration and the reader's
-:class:`~fgslam.readers.sanity.OdometryLimits`; :func:`check_events` applies them to a
+:class:`~fgslam.io.readers.sanity.OdometryLimits`; :func:`check_events` applies them to a
 reader's event stream (:mod:`fgslam.events`) as it leaves the reader; :class:`Findings`
 counts each kind, keeps its first record, words one warning per kind and the ``report.json``
 section, and under ``strict`` (``--strict``) raises :class:`ImplausibleInput` (a
@@ -22,8 +22,8 @@ The rules:
   counted and passed on (no feature comes of it; a keyframe still may).
 - ``odometry``: an odometry record's wheel motion (its ticks times the configuration's metres
   per tick: travel and turn of the differential drive) over the time since the odometry record
-  before it is held to :func:`fgslam.readers.sanity.implausible` (speed and turn rate, with
-  :data:`~fgslam.readers.sanity.MIN_DT` s of slack); the first record over the configured
+  before it is held to :func:`fgslam.io.readers.sanity.implausible` (speed and turn rate, with
+  :data:`~fgslam.io.readers.sanity.MIN_DT` s of slack); the first record over the configured
   ``odometry.sample_period``; without a clock (index stamps), no wheel may travel more than
   ``max_step`` in one record. Such a record is skipped (the jump dropped: its ticks are not
   carried) and counted.
@@ -32,7 +32,7 @@ The rules:
 - ``order``: a record stamped earlier than the record of its kind before it (streams:
   odometry, laser, sonar, truth). A native log passes it on (the pipeline's reorder buffer
   puts it back in order or drops it); the foreign readers drop it or carry its motion at
-  reading and note it (:meth:`fgslam.readers.common.Problems.backward`).
+  reading and note it (:meth:`fgslam.io.readers.common.Problems.backward`).
 """
 
 from __future__ import annotations
@@ -46,7 +46,7 @@ import numpy as np
 
 from fgslam.errors import ReaderError
 from fgslam.events import Event, LaserScan, OdometryEvent, SonarReading, TruthPose
-from fgslam.readers.sanity import OdometryLimits, implausible
+from fgslam.io.readers.sanity import OdometryLimits, implausible
 
 MAX_COORD = 1e7  # m: a truth (or pose) coordinate beyond is not a position
 MAX_HEADING = 1e4  # rad: sources write headings within a turn; 1600 turns unwrapped at most
@@ -130,7 +130,7 @@ class Rules:
     @classmethod
     def of(cls, cfg: Any, limits: OdometryLimits | None = None, clock: bool = True) -> Rules:
         """The rules for a robot configuration (laser range, wheel geometry) and odometry
-        limits (default :class:`~fgslam.readers.sanity.OdometryLimits`)."""
+        limits (default :class:`~fgslam.io.readers.sanity.OdometryLimits`)."""
         o = cfg.odometry
         return cls(
             range_min=RANGE_MIN,

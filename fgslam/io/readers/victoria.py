@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from fgslam.readers.common import Problems, ReaderError, StrPath, open_lines
+from fgslam.io.readers.common import Problems, ReaderError, StrPath, open_lines
 
 
 @dataclass(frozen=True)

@@ -69,7 +69,7 @@ class OdometryLimits:
     at most ``max_step`` m between two records (any turn: a heading is known only modulo a
     full turn); a gap longer than ``hole`` s with scans in it is
     an odometry hole; odometry that repeats its last pose is held as possibly stale for up to
-    ``stale`` s (:class:`fgslam.readers.common.StaleOdometryHold`)."""
+    ``stale`` s (:class:`fgslam.io.readers.common.StaleOdometryHold`)."""
 
     max_speed: float = 3.0
     max_turn_rate: float = 6.0

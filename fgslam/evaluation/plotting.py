@@ -14,7 +14,7 @@ import numpy as np
 
 from factors.odometry import integrate_poses, ticks_to_distances
 from fgslam.events import LaserScan, OdometryEvent, SonarReading, TruthPose, scan_bearings
-from fgslam.safeio import atomic_path
+from fgslam.io.safeio import atomic_path
 from fgslam.sim.world import World
 
 SONAR_STYLE = {"plane": ("s", "tab:blue"), "corner": ("^", "tab:red"), "edge": ("o", "tab:green")}
@@ -39,12 +39,12 @@ def plot_log(
     scan_time: float | None,
     options: dict | None = None,
 ) -> dict:
-    """Draw a log (any format :func:`fgslam.readers.open_log` reads, with reader ``options``):
+    """Draw a log (any format :func:`fgslam.io.formats.open_log` reads, with reader ``options``):
     the world (``world``, or the log's when it is built in), the true or reference path, the
     odometry-only path, and one laser scan with the sonar readings of the 6 s before and
     after it (placed with the true poses when the log has them, else with odometry). The
     image is written atomically. Returns a few numbers about the log."""
-    from fgslam.readers import open_log
+    from fgslam.io.formats import open_log
     from fgslam.sim.world import BUILTIN_WORLDS, load_world
 
     reader = open_log(path, **(options or {}))
