@@ -13,14 +13,14 @@ world (cx, cy, c_theta): what the EKF uses. The factors convert both to GTSAM's 
 from __future__ import annotations
 
 import math
-from math import atan2, cos, remainder, sin, sqrt
+from math import atan2, cos, sin, sqrt
 
 import gtsam
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from factors.calibrated import calibrated
-from factors.geometry import TWO_PI, sensor_pose, wrap_angle
+from factors.geometry import sensor_pose, wrap_angle
 from factors.line import IDENTITY_MOUNT, Mount
 
 
@@ -172,8 +172,8 @@ def _make_corner_factor(
             H[0] = Hx
             H[1] = Hc
         if dim == 3:
-            return array((remainder(phi - pm, TWO_PI), r - rm, remainder(gamma - gm, TWO_PI)))
-        return array((remainder(phi - pm, TWO_PI), r - rm))
+            return array((wrap_angle(phi - pm), r - rm, wrap_angle(gamma - gm)))
+        return array((wrap_angle(phi - pm), r - rm))
 
     if cal_key is not None:
         return calibrated(noise, [pose_key, corner_key], cal_key, cal_jacobian, error)

@@ -9,21 +9,45 @@ from numpy.typing import ArrayLike, NDArray
 
 TWO_PI = 2.0 * math.pi
 
+# The one angle wrap (docs/design.md, 2). Every wrap of the project calls one of the three
+# functions below; tests/test_one_rule.py finds any other (an inline ``remainder(x, 2 pi)``,
+# ``(x + pi) % (2 pi) - pi``, ``arctan2(sin x, cos x)`` or a function of its own).
+#
+# wrap_angle / wrap_angles: (-pi, pi], exact. fmod(a, 2 pi) is exact in floating point, and
+# so is the one subtraction or addition of 2 pi after it (Sterbenz: the operands are within
+# a factor 2 of each other), so the result is a - 2 pi n without rounding: an angle already
+# inside is returned unchanged, and scalar and vectorised give the same bits. (It equals
+# math.remainder(a, 2 pi) except at -pi, which becomes pi.)
+#
+# wrap_angle_half_open: [-pi, pi), as (a + pi) mod 2 pi - pi, which rounds a + pi (the last
+# bits differ from wrap_angle's). The simulator and the scan matcher's reference fans were
+# written with it and keep it bit for bit: their outputs (simulated logs, the bearings a
+# covered direction is searched among) stay the same, and the scan match's response spread
+# takes the sign of an angle difference of exactly pi from it.
+
 
 def wrap_angle(a: float) -> float:
-    """Wrap a scalar angle to (-pi, pi]."""
-    w = math.fmod(a + math.pi, TWO_PI)
-    if w <= 0.0:
-        w += TWO_PI
-    return w - math.pi
+    """Wrap a scalar angle to (-pi, pi], exactly (module note above)."""
+    w = math.fmod(a, TWO_PI)
+    if w > math.pi:
+        return w - TWO_PI
+    if w <= -math.pi:
+        return w + TWO_PI
+    return w
 
 
 def wrap_angles(a: ArrayLike) -> NDArray[np.float64]:
-    """Vectorised :func:`wrap_angle`."""
-    a = np.asarray(a, dtype=float)
-    w = np.mod(a + np.pi, TWO_PI)
-    w = np.where(w <= 0.0, w + TWO_PI, w)
-    return w - np.pi
+    """Vectorised :func:`wrap_angle` (the same bits, element for element)."""
+    w = np.fmod(np.asarray(a, dtype=float), TWO_PI)
+    w = np.where(w > math.pi, w - TWO_PI, w)
+    return np.where(w <= -math.pi, w + TWO_PI, w)
+
+
+def wrap_angle_half_open(a: ArrayLike) -> float | NDArray[np.float64]:
+    """``a`` (a float or an array) wrapped to [-pi, pi) as (a + pi) mod 2 pi - pi: the
+    simulator's and the scan matcher's reference fans' convention (module note above); every
+    other wrap is :func:`wrap_angle`."""
+    return (a + math.pi) % TWO_PI - math.pi
 
 
 def rot(theta: float) -> NDArray[np.float64]:

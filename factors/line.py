@@ -13,14 +13,14 @@ Jacobians of the plain functions are w.r.t. the robot's world (x, y, th) and the
 
 from __future__ import annotations
 
-from math import cos, pi, remainder, sin
+from math import cos, pi, sin
 
 import gtsam
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from factors.calibrated import calibrated
-from factors.geometry import TWO_PI, sensor_pose, wrap_angle
+from factors.geometry import sensor_pose, wrap_angle, wrap_angles
 
 Mount = tuple[float, float, float]
 IDENTITY_MOUNT: Mount = (0.0, 0.0, 0.0)
@@ -46,11 +46,31 @@ def line_difference(a: ArrayLike, b: ArrayLike) -> tuple[NDArray[np.float64], ND
     return np.array([da, float(a[1]) - float(b[1])]), -np.eye(2)
 
 
+def line_differences(a: ArrayLike, M: ArrayLike) -> NDArray[np.float64]:
+    """:func:`line_difference` without Jacobians, vectorised: ``a`` (2,) or each row of ``a``
+    (q, 2) against each row of ``M`` (n, 2): (n, 2) or (q, n, 2), the same arithmetic."""
+    a, M = np.asarray(a, dtype=float), np.asarray(M, dtype=float)
+    E = a[..., None, :] - M
+    da = wrap_angles(E[..., 0])
+    f = flips(da)
+    E[..., 0] = np.where(f, wrap_angles(da - pi), da)
+    E[..., 1] = np.where(f, a[..., None, 1] + M[:, 1], E[..., 1])
+    return E
+
+
 def normalize_line(alpha: float, d: float) -> tuple[float, float]:
     """The (alpha, d) with d >= 0 and alpha in (-pi, pi] for the same line."""
     if d < 0:
         return wrap_angle(alpha + pi), -d
     return wrap_angle(alpha), d
+
+
+def normalize_lines(
+    alpha: ArrayLike, d: ArrayLike
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Vectorised :func:`normalize_line`: (alpha in (-pi, pi], d >= 0) element for element."""
+    alpha, d = np.asarray(alpha, dtype=float), np.asarray(d, dtype=float)
+    return wrap_angles(np.where(d < 0, alpha + pi, alpha)), np.abs(d)
 
 
 def _line_terms(
@@ -67,10 +87,10 @@ def _line_terms(
     xs, ys = x + ox, y + oy
     ca, sa = cos(aw), sin(aw)
     d = dw - xs * ca - ys * sa
-    e0 = remainder(aw - th - mth - am, TWO_PI)
+    e0 = wrap_angle(aw - th - mth - am)
     sg = 1.0
     if flips(e0):  # use the (alpha + pi, -d) form of the prediction
-        e0 = remainder(e0 + pi, TWO_PI)
+        e0 = wrap_angle(e0 + pi)
         sg = -1.0
     return (
         e0,
@@ -115,6 +135,20 @@ def line_residual(
         np.array([[0.0, 0.0, -1.0], [g0, g1, g2]]),
         np.array([[1.0, 0.0], [q, sg]]),
     )
+
+
+def line_residuals(pose: ArrayLike, lines: ArrayLike, Z: ArrayLike) -> NDArray[np.float64]:
+    """:func:`line_residual` without Jacobians (identity mount), vectorised: each measurement
+    row of ``Z`` (m, 2) against each world line of ``lines`` (n, 2): (m, n, 2), by the same
+    formulas and flip rule as :func:`_line_terms`."""
+    x, y, th = (float(v) for v in pose)
+    lines, Z = np.asarray(lines, dtype=float).reshape(-1, 2), np.asarray(Z, dtype=float)
+    aw, dw = lines[:, 0], lines[:, 1]
+    e0 = wrap_angles(aw - th - Z[:, 0:1])
+    flip = flips(e0)  # the (alpha + pi, -d) form of the prediction
+    e0 = np.where(flip, wrap_angles(e0 + pi), e0)
+    d = dw - x * np.cos(aw) - y * np.sin(aw)
+    return np.stack([e0, np.where(flip, -d, d) - Z[:, 1:2]], axis=-1)
 
 
 def line_to_world(

@@ -25,6 +25,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from factors.geometry import wrap_angle
+from factors.line import normalize_line
 
 
 class FitRejected(Exception):
@@ -129,9 +130,7 @@ def tls_line(x: NDArray[np.float64], y: NDArray[np.float64]) -> tuple[float, flo
     sxx, syy, sxy = ((x - mx) ** 2).sum(), ((y - my) ** 2).sum(), ((x - mx) * (y - my)).sum()
     alpha = 0.5 * math.atan2(-2 * sxy, syy - sxx)
     d = mx * math.cos(alpha) + my * math.sin(alpha)
-    if d < 0:
-        alpha, d = alpha + math.pi, -d
-    return wrap_angle(alpha), d
+    return normalize_line(alpha, d)
 
 
 def fit_line(

@@ -14,6 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from factors.line import normalize_lines
 from fgslam.config import RobotConfig
 from fgslam.events import SONAR_KINDS, SonarReading
 
@@ -194,10 +195,9 @@ def to_laser_frame(
     xy = np.column_stack([tx + rng * np.cos(a), ty + rng * np.sin(a)])
     # planes: (alpha = bearing, d = range) in the transducer frame -> laser frame
     d = rng + tx * np.cos(a) + ty * np.sin(a)
-    alpha = np.where(d < 0, a + math.pi, a)
-    alpha = (alpha + math.pi) % (2 * math.pi) - math.pi
+    alpha, d = normalize_lines(a, d)
     kind = kind.astype(np.int64)
-    line = np.where((kind == 0)[:, None], np.column_stack([alpha, np.abs(d)]), np.nan)
+    line = np.where((kind == 0)[:, None], np.column_stack([alpha, d]), np.nan)
     return SonarPoints(
         buf.readings,
         kind,

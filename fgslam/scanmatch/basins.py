@@ -9,10 +9,9 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from factors.geometry import rot, wrap_angles
+from factors.geometry import rot, wrap_angle, wrap_angles
 from fgslam.scanmatch.icp import _correspond, _Icp, _icp
 from fgslam.scanmatch.params import MatchParams
-from fgslam.scanmatch.points import _wrap
 from fgslam.scanmatch.reference import Reference
 from fgslam.scanmatch.search import _Response
 
@@ -79,7 +78,7 @@ def _seeds(resp: _Response, res: float, most: int) -> list[int]:
         far = True
         for j in out:
             d = p - resp.poses[j]
-            if np.hypot(d[0], d[1]) <= 3 * res and abs(_wrap(float(d[2]))) <= 3 * resp.step:
+            if np.hypot(d[0], d[1]) <= 3 * res and abs(wrap_angle(float(d[2]))) <= 3 * resp.step:
                 far = False
                 break
         if far:
@@ -92,7 +91,7 @@ def _seeds(resp: _Response, res: float, most: int) -> list[int]:
 def _same(a: NDArray, b: NDArray, res: float, step: float) -> bool:
     """Whether two ICP results are one basin: within 2 cells and 2 rotation steps."""
     d = a - b
-    return bool(np.hypot(d[0], d[1]) <= 2 * res and abs(_wrap(float(d[2]))) <= 2 * step)
+    return bool(np.hypot(d[0], d[1]) <= 2 * res and abs(wrap_angle(float(d[2]))) <= 2 * step)
 
 
 def _inside(pose: NDArray, guess: NDArray, params: MatchParams, res: float, step: float) -> bool:
@@ -100,7 +99,7 @@ def _inside(pose: NDArray, guess: NDArray, params: MatchParams, res: float, step
     d = pose - guess
     return bool(
         max(abs(d[0]), abs(d[1])) <= params.search_xy + res
-        and abs(_wrap(float(d[2]))) <= params.search_theta + step
+        and abs(wrap_angle(float(d[2]))) <= params.search_theta + step
     )
 
 

@@ -10,10 +10,9 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from factors.geometry import rot
+from factors.geometry import rot, wrap_angle, wrap_angle_half_open
 from fgslam.scanmatch.icp import _Icp
 from fgslam.scanmatch.params import MatchParams
-from fgslam.scanmatch.points import _wrap
 from fgslam.scanmatch.search import _Response
 
 
@@ -54,7 +53,7 @@ def _covariance(
     A[:2, :2] = rot(float(pose[2]))
     d = resp.poses - pose
     # to [-pi, pi), not wrap_angles' (-pi, pi]: the sign of d enters the moment M_ref
-    d[:, 2] = (d[:, 2] + math.pi) % (2 * math.pi) - math.pi
+    d[:, 2] = wrap_angle_half_open(d[:, 2])
     nats = resp.n / kappa * params.response_gain * (score - resp.scores)
     # poses that the local Gaussian (ICP covariance plus the grid's cell and rotation step)
     # explains are the best basin itself: only the others widen the covariance
@@ -68,7 +67,7 @@ def _covariance(
     # basin as good as the best within the residuals' noise is a tie and weighs as much
     for alt, dc, sd in alts:
         da = alt.pose - pose
-        da[2] = _wrap(float(da[2]))
+        da[2] = wrap_angle(float(da[2]))
         t = max(dc, 0.0) / max(sd * math.sqrt(kappa), 1e-9)
         wa = math.exp(-0.5 * min(t * t, 1400.0))
         d = np.vstack([d, da])

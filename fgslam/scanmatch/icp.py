@@ -9,9 +9,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from factors.geometry import rot, wrap_angles
+from factors.geometry import rot, wrap_angle, wrap_angles
 from fgslam.scanmatch.params import MatchParams
-from fgslam.scanmatch.points import _wrap
 from fgslam.scanmatch.reference import Reference
 
 
@@ -130,4 +129,4 @@ def _expmap(pose: NDArray, xi: NDArray) -> NDArray:
         s, c = math.sin(w), math.cos(w)
         v = np.array([s * xi[0] - (1 - c) * xi[1], (1 - c) * xi[0] + s * xi[1]]) / w
     t = pose[:2] + rot(float(pose[2])) @ v
-    return np.array([t[0], t[1], _wrap(float(pose[2]) + w)])
+    return np.array([t[0], t[1], wrap_angle(float(pose[2]) + w)])

@@ -1,5 +1,5 @@
 """Points and angles: a scan's robot-frame points (:func:`scan_points`), the cleaning and
-voxel filter of point sets, and the matcher's angle wrap."""
+voxel filter of point sets."""
 
 from __future__ import annotations
 
@@ -7,6 +7,9 @@ import math
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+
+# the one angle wrap (docs/design.md, 2), under the name fgslam.scanmatch.matcher imports
+from factors.geometry import wrap_angle as _wrap  # noqa: F401
 
 
 def scan_points(
@@ -37,13 +40,6 @@ def _clean(points: ArrayLike) -> NDArray[np.float64]:
     p = p.reshape(-1, 2) if p.ndim != 2 or p.shape[1] != 2 else p
     p = p[np.isfinite(p).all(axis=1)]
     return p[np.abs(p).max(axis=1) < 1e6] if len(p) else p
-
-
-def _wrap(a: float) -> float:
-    """``a`` wrapped to [-pi, pi] by an exact IEEE remainder. Not factors.geometry's
-    wrap_angle, which rounds a + pi (wrap_angle(0.1) = 0.1 + 1e-16) and maps -pi to pi:
-    that would change matches in the last bits."""
-    return math.remainder(a, 2.0 * math.pi)
 
 
 def _voxel(points: NDArray, size: float) -> NDArray:

@@ -10,6 +10,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
+from factors.geometry import wrap_angle_half_open
 from fgslam.scanmatch.params import MatchParams
 from fgslam.scanmatch.points import _clean
 
@@ -126,7 +127,7 @@ class Reference:
             dist = np.maximum(np.hypot(v[:, 0], v[:, 1]), 0.3)
             mg = margin_theta + np.arcsin(np.minimum(margin_xy / dist, 1.0))
             phi = np.arctan2(v[:, 1], v[:, 0])
-            phi = (phi - ang[0] + math.pi) % (2 * math.pi) - math.pi + ang[0]
+            phi = wrap_angle_half_open(phi - ang[0]) + ang[0]  # within [-pi, pi) of ang[0]
             good = np.ones(len(p), dtype=bool)
             for f in (phi - mg, phi, phi + mg):
                 k = np.searchsorted(ang, f)
@@ -162,7 +163,7 @@ def _fans(
         v = p[good][inv.ravel() == i] - c
         ang = np.arctan2(v[:, 1], v[:, 0])
         ref = math.atan2(float(np.sin(ang).mean()), float(np.cos(ang).mean()))
-        ang = np.sort((ang - ref + math.pi) % (2 * math.pi) - math.pi + ref)
+        ang = np.sort(wrap_angle_half_open(ang - ref) + ref)
         if len(ang) < 2:
             continue
         gap = np.diff(ang)

@@ -15,6 +15,7 @@ import math
 
 import numpy as np
 
+from factors.geometry import wrap_angle
 from fgslam.config import load_config
 from fgslam.io.readers.victoria import Sighting, Step, VictoriaPark
 from fgslam.sim.sensors import SimParams
@@ -75,7 +76,7 @@ def synthetic_park(noise: float = 0.0, seed: int = 0) -> tuple[VictoriaPark, np.
                 [
                     c * (b[0] - a[0]) + s * (b[1] - a[1]),
                     -s * (b[0] - a[0]) + c * (b[1] - a[1]),
-                    math.remainder(b[2] - a[2], 2 * math.pi),
+                    wrap_angle(b[2] - a[2]),
                 ]
             )
             d = d + noise * rng.standard_normal(3) * [0.01, 0.01, 0.001]

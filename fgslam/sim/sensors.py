@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from factors.geometry import wrap_angles
+from factors.geometry import wrap_angle, wrap_angle_half_open, wrap_angles
 from fgslam.config import LaserConfig, SonarConfig
 from fgslam.events import SonarEcho
 from fgslam.sim.raycast import blocked, raycast
@@ -80,18 +80,6 @@ def laser_scan(
     r = np.round(np.round(r / q) * q, 6)  # whole quanta, written compactly in logs
     r[~np.isfinite(r) | (r > laser.max_range) | (r <= 0)] = np.nan
     return r
-
-
-def wrap_from_minus_pi(a: float) -> float:
-    """``a`` wrapped into [-pi, pi) (:func:`factors.geometry.wrap_angle` gives +pi where this
-    gives -pi: the simulator keeps its convention, e.g. the way it turns toward a waypoint
-    straight behind)."""
-    return (a + math.pi) % (2 * math.pi) - math.pi
-
-
-def _wrap(a: float) -> float:
-    # exact; factors.geometry.wrap_angle rounds a + pi (the last bits differ)
-    return math.remainder(a, 2 * math.pi)
 
 
 def sonar_echoes(
@@ -166,7 +154,7 @@ def sonar_echoes(
         # circles hide what is behind them but not themselves: test against walls and others
         vis = ~blocked((x, y), pts, segs, None)
         for (kind, _, _, rng_, brg), v in zip(reflectors, vis, strict=True):
-            if v and abs(_wrap(brg - th)) < half:
+            if v and abs(wrap_angle(brg - th)) < half:
                 cands.append((kind, rng_, brg))
         cands.extend(_phantoms(world, reflectors, vis, (x, y, th), half, rng, params))
 
@@ -177,10 +165,10 @@ def sonar_echoes(
         if rng.random() < params.misclass_prob:
             kind = ("plane", "corner", "edge")[int(rng.integers(3))]
         r_meas = r * (1 + sound_bias) * (1 + rng.normal(0, params.sonar_range_sigma_rel))
-        b_meas = wrap_from_minus_pi(brg - th) + rng.normal(
+        b_meas = wrap_angle_half_open(brg - th) + rng.normal(
             0, math.radians(params.sonar_bearing_sigma_deg)
         )
-        echoes.append(SonarEcho(kind, float(r_meas), float(wrap_from_minus_pi(b_meas))))
+        echoes.append(SonarEcho(kind, float(r_meas), float(wrap_angle_half_open(b_meas))))
     return tuple(echoes)
 
 
@@ -202,7 +190,7 @@ def _phantoms(world, reflectors, visible, pose, half, rng, params):
         mx, my = 2 * (ax + s * ex) - px, 2 * (ay + s * ey) - py  # mirror image
         dist = math.hypot(mx - x, my - y)
         brg = math.atan2(my - y, mx - x)
-        if dist > 2 * 6.0 or abs(_wrap(brg - th)) > half:
+        if dist > 2 * 6.0 or abs(wrap_angle(brg - th)) > half:
             continue
         # the bounce point is where the path to the image crosses the wall
         dx, dy = mx - x, my - y

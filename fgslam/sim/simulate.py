@@ -17,9 +17,10 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from factors.geometry import wrap_angle_half_open
 from fgslam.config import RobotConfig
 from fgslam.events import Event, LaserScan, OdometryEvent, SonarReading, TruthPose
-from fgslam.sim.sensors import SimParams, laser_scan, sonar_echoes, wrap_from_minus_pi
+from fgslam.sim.sensors import SimParams, laser_scan, sonar_echoes
 from fgslam.sim.world import World
 
 LIN_ACCEL = 0.4  # m/s^2
@@ -116,7 +117,7 @@ def plan_run(
                 phase = "turn"
                 v_max, w_max = rng_drive.uniform(0.3, 0.5), rng_drive.uniform(0.5, 0.8)
         elif phase == "turn":
-            err = wrap_from_minus_pi(math.atan2(b[1] - y, b[0] - x) - th)
+            err = wrap_angle_half_open(math.atan2(b[1] - y, b[0] - x) - th)
             v_cmd, w_cmd = 0.0, max(-w_max, min(w_max, 2.5 * err))
             if abs(err) < 0.01 and abs(w) < 0.05:
                 phase = "drive"
@@ -126,7 +127,7 @@ def plan_run(
             lat = ux * (y - a[1]) - uy * (x - a[0])
             desired = math.atan2(uy, ux) - math.atan(lat / 0.6)
             v_cmd = min(v_max, math.sqrt(2 * LIN_ACCEL * max(rem, 0.0)))
-            w_cmd = max(-0.6, min(0.6, 2.0 * wrap_from_minus_pi(desired - th)))
+            w_cmd = max(-0.6, min(0.6, 2.0 * wrap_angle_half_open(desired - th)))
             if rem < 0.02:
                 phase, pause_left = "pause", rng_drive.uniform(0.0, 1.5)
         v += max(-LIN_ACCEL * dt, min(LIN_ACCEL * dt, v_cmd - v))
@@ -137,7 +138,7 @@ def plan_run(
         ds = 0.5 * (lr + ll)
         x += ds * math.cos(th + dth / 2)
         y += ds * math.sin(th + dth / 2)
-        th = wrap_from_minus_pi(th + dth)
+        th = wrap_angle_half_open(th + dth)
         lr_list.append(lr)
         ll_list.append(ll)
         poses.append((x, y, th))

@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from factors.line import normalize_line
 from fgslam.errors import UserError
 
 BUILTIN_WORLDS = ("corridor", "corridor-oneway")
@@ -152,9 +153,7 @@ class World:
                 n = math.hypot(nx, ny)
                 alpha = math.atan2(ny, nx)
                 d = (x1 * nx + y1 * ny) / n
-                if d < 0:
-                    alpha, d = alpha + math.pi, -d
-                alpha = math.remainder(alpha, 2 * math.pi)
+                alpha, d = normalize_line(alpha, d)
                 lines.append(
                     {"alpha": alpha, "d": d, "endpoints": [[x1, y1], [x2, y2]], "laser": laser}
                 )

@@ -51,7 +51,14 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.stats import chi2
 
-from factors.geometry import between_poses, compose_poses, invert_pose, transform_points
+from factors.geometry import (
+    between_poses,
+    compose_poses,
+    invert_pose,
+    transform_points,
+    wrap_angle,
+    wrap_angles,
+)
 from factors.odometry import relative_pose
 from fgslam.config import RobotConfig
 from fgslam.scanmatch import MatchParams, Reference, match
@@ -275,7 +282,7 @@ class LoopCloser:
         m = self._maps.get(j)
         if m is not None and m.keys == keys:
             d = rel - m.rel
-            dth = np.abs(np.remainder(d[:, 2] + math.pi, 2 * math.pi) - math.pi)
+            dth = np.abs(wrap_angles(d[:, 2]))
             if np.hypot(d[:, 0], d[:, 1]).max() <= p.cache_xy and dth.max() <= p.cache_theta:
                 self._maps.move_to_end(j)
                 self.stats["loop_maps_reused"] += 1
@@ -353,7 +360,7 @@ class LoopCloser:
                 continue
             pred = compose_poses(compose_poses(invert_pose(old), c1.pose), new)
             d = c2.pose - pred
-            dth = math.remainder(d[2], 2 * math.pi)
+            dth = wrap_angle(float(d[2]))
             if math.hypot(d[0], d[1]) <= p.pair_xy and abs(dth) <= p.pair_theta:
                 self.pending.remove(c1)
                 for c in (c1, c2):

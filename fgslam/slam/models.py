@@ -27,10 +27,11 @@ from factors.corner import (
 )
 from factors.geometry import wrap_angle, wrap_angles
 from factors.line import (
-    flips,
     line_difference,
+    line_differences,
     line_factor,
     line_residual,
+    line_residuals,
     line_to_world,
     normalize_line,
 )
@@ -144,14 +145,10 @@ def difference(
 def differences(kind: str, a: NDArray[np.float64], M: NDArray[np.float64]) -> NDArray[np.float64]:
     """:func:`difference` of ``a`` (dim,) or of each row of ``a`` (q, dim) against each row
     of ``M`` (no Jacobians), vectorised: (n, dim) or (q, n, dim)."""
+    if kind == "line":
+        return line_differences(a, M)
     a = np.asarray(a, dtype=float)
     E = a[..., None, :] - M
-    if kind == "line":
-        da = wrap_angles(E[..., 0])
-        f = flips(da)
-        E[..., 0] = np.where(f, wrap_angles(da - math.pi), da)
-        E[..., 1] = np.where(f, a[..., None, 1] + M[:, 1], E[..., 1])
-        return E
     for i, ang in enumerate(KINDS[kind].angular):
         if ang:
             E[..., i] = wrap_angles(E[..., i])
@@ -187,24 +184,15 @@ def residuals_grid(
 ) -> NDArray[np.float64]:
     """:func:`residuals` of several measurements ``Z`` (m, k) of one kind and length k against
     every landmark: (m, n, k), element for element the same arithmetic."""
+    if kind == "line":
+        return line_residuals(pose, lms, Z)
     x, y, th = (float(v) for v in pose)
     lms = np.asarray(lms, dtype=float).reshape(-1, DIM[kind])
     Z = np.asarray(Z, dtype=float)
-    z0, z1 = Z[:, 0:1], Z[:, 1:2]
-    if kind == "line":
-        aw, dw = lms[:, 0], lms[:, 1]
-        e0 = np.remainder(aw - th - z0 + math.pi, 2 * math.pi) - math.pi
-        flip = flips(e0)  # the (alpha + pi, -d) form of the prediction
-        e0 = np.where(flip, np.remainder(e0 + 2 * math.pi, 2 * math.pi) - math.pi, e0)
-        d = dw - x * np.cos(aw) - y * np.sin(aw)
-        return np.stack([e0, np.where(flip, -d, d) - z1], axis=-1)
     dx, dy = lms[:, 0] - x, lms[:, 1] - y
-    cols = [
-        np.remainder(np.arctan2(dy, dx) - th - z0 + math.pi, 2 * math.pi) - math.pi,
-        np.hypot(dx, dy) - z1,
-    ]
+    cols = [wrap_angles(np.arctan2(dy, dx) - th - Z[:, 0:1]), np.hypot(dx, dy) - Z[:, 1:2]]
     if Z.shape[1] == 3:  # a laser corner: its bisector
-        cols.append(np.remainder(lms[:, 2] - th - Z[:, 2:3] + math.pi, 2 * math.pi) - math.pi)
+        cols.append(wrap_angles(lms[:, 2] - th - Z[:, 2:3]))
     return np.stack(cols, axis=-1)
 
 

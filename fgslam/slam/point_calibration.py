@@ -28,6 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import minimize, minimize_scalar
 
+from factors.geometry import wrap_angle
 from fgslam.io.readers.victoria import VictoriaPark
 
 Scales = float | Sequence[float] | NDArray[np.float64]
@@ -98,7 +99,7 @@ def sighting_nll(
             count += 1
             K = PHt @ Si
             x[:n] += K @ nu
-            x[2] = math.remainder(x[2], 2 * math.pi)
+            x[2] = wrap_angle(float(x[2]))
             P[:n, :n] -= K @ PHt.T
             P[:n, :n] = 0.5 * (P[:n, :n] + P[:n, :n].T)
 
@@ -111,7 +112,7 @@ def sighting_nll(
         G = np.array([[c, -si, 0.0], [si, c, 0.0], [0.0, 0.0, 1.0]])
         x[0] += c * dx - si * dy
         x[1] += si * dx + c * dy
-        x[2] = math.remainder(th + dth, 2 * math.pi)
+        x[2] = wrap_angle(float(th + dth))
         P[:3, :n] = F @ P[:3, :n]
         P[:n, :3] = P[:n, :3] @ F.T
         P[:3, :3] += G @ scaled_covariance(st.cov, scale) @ G.T

@@ -29,6 +29,7 @@ import gtsam
 import numpy as np
 from numpy.typing import NDArray
 
+from factors.geometry import compose_poses
 from factors.odometry import Preintegrated
 from fgslam.frontend.features import Feature
 from fgslam.io.readers.victoria import VictoriaPark, to_bearing_range
@@ -174,18 +175,7 @@ def run_points(
     for k, st in enumerate(steps, 1):
         keyframe(k, st.j, _pre(st.delta, scaled_covariance(st.cov, scale)))
         index.append(st.j)
-        p = odo[-1]
-        c, s = np.cos(p[2]), np.sin(p[2])
-        d = st.delta
-        odo.append(
-            np.array(
-                [
-                    p[0] + c * d[0] - s * d[1],
-                    p[1] + s * d[0] + c * d[1],
-                    np.arctan2(np.sin(p[2] + d[2]), np.cos(p[2] + d[2])),
-                ]
-            )
-        )
+        odo.append(compose_poses(odo[-1], st.delta))
     stats = step.stats
     lms = step.landmarks  # discarded tentatives are forgotten: their sightings count as -1
 
