@@ -20,6 +20,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from factors.geometry import rot, wrap_angle
+from factors.noise import noise_model
 
 
 @dataclass(frozen=True)
@@ -298,9 +299,7 @@ class Preintegrated:
 
     def factor(self, key1: int, key2: int) -> gtsam.BetweenFactorPose2:
         """The between factor for keys ``key1`` -> ``key2``."""
-        return gtsam.BetweenFactorPose2(
-            key1, key2, self.delta, gtsam.noiseModel.Gaussian.Covariance(self.covariance)
-        )
+        return gtsam.BetweenFactorPose2(key1, key2, self.delta, noise_model(self.covariance))
 
 
 def to_between_covariance(P_start: ArrayLike, dth: float) -> NDArray[np.float64]:

@@ -20,6 +20,7 @@ from numpy.typing import ArrayLike, NDArray
 from factors.calibrated import calibrated
 from factors.geometry import bearing_range, sensor_pose, to_body_jacobian, wrap_angle
 from factors.line import IDENTITY_MOUNT, Mount
+from factors.noise import noise_model
 
 
 def predict_point(
@@ -88,19 +89,17 @@ def point_factor(
     measured: ArrayLike,
     covariance: ArrayLike,
     mount: Mount = IDENTITY_MOUNT,
-    robust: gtsam.noiseModel.mEstimator.Base | None = None,
+    robust: str = "none",
     cal_key: int | None = None,
     cal_jacobian: ArrayLike | None = None,
 ) -> gtsam.NonlinearFactor:
     """Built-in ``BearingRangeFactor2D`` for a sensor-frame (phi, r) with 2x2 covariance
-    (order [bearing, range], as GTSAM's error); ``robust``: an M-estimator wrapped around
-    the Gaussian noise (``noiseModel.Robust``). With ``cal_key`` (a calibration ``Vector``)
+    (order [bearing, range], as GTSAM's error); ``robust``: the robust kernel of its noise
+    model (:func:`factors.noise.noise_model`). With ``cal_key`` (a calibration ``Vector``)
     the robot-frame measurement reads z + ``cal_jacobian`` c
     (:func:`factors.calibrated.calibrated`; a Python factor of the same error)."""
     z, C = bearing_range_to_robot_frame(measured, covariance, mount)
-    noise = gtsam.noiseModel.Gaussian.Covariance(C)
-    if robust is not None:
-        noise = gtsam.noiseModel.Robust.Create(robust, noise)
+    noise = noise_model(C, robust)
     if cal_key is None:
         return gtsam.BearingRangeFactor2D(pose_key, point_key, gtsam.Rot2(z[0]), z[1], noise)
 

@@ -35,12 +35,15 @@ from factors.line import (
     line_to_world,
     normalize_line,
 )
+from factors.noise import ROBUST_KERNELS as ROBUST_KERNELS
+from factors.noise import noise_model
 from factors.own_time import interpolated_factor
 from factors.point import point_factor, point_residual, point_to_world
 from fgslam.frontend.features import Feature, OwnTime
 
 
-def _rot_block(th: float) -> NDArray[np.float64]:
+def rot_block(th: float) -> NDArray[np.float64]:
+    """blockdiag(R(th), 1): a ``Pose2``'s body tangent at heading ``th`` into world axes."""
     c, s = math.cos(th), math.sin(th)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
@@ -85,7 +88,7 @@ class Kind:
     equality: Callable
 
     def tangent_to_world(self, mean: NDArray[np.float64]) -> NDArray[np.float64]:
-        return _rot_block(float(mean[2])) if self.pose else np.eye(self.dim)
+        return rot_block(float(mean[2])) if self.pose else np.eye(self.dim)
 
     def value(self, lm: NDArray[np.float64]) -> object:
         """The GTSAM value of world parameters ``lm``."""
@@ -208,56 +211,6 @@ def to_world(
     return point_to_world(pose, z)
 
 
-ROBUST_KERNELS = ("none", "huber", "cauchy", "dcs")
-
-
-def m_estimator(kernel: str, dim: int) -> gtsam.noiseModel.mEstimator.Base | None:
-    """The M-estimator of a robust noise model for ``dim``-dimensional residuals (None for
-    "none"). GTSAM weighs by the norm of the whitened residual, which is chi-distributed
-    with ``dim`` dof for a correct association: the threshold k is its 95 % quantile,
-    sqrt(chi2_95(dim)), so correct sightings keep (nearly) full weight."""
-    if kernel == "none":
-        return None
-    k = math.sqrt(CHI2_95[dim])
-    if kernel == "huber":
-        return gtsam.noiseModel.mEstimator.Huber.Create(k)
-    if kernel == "cauchy":
-        return gtsam.noiseModel.mEstimator.Cauchy.Create(k)
-    if kernel == "dcs":
-        return gtsam.noiseModel.mEstimator.DCS.Create(k * k)
-    raise ValueError(f"unknown robust kernel {kernel!r}; expected one of {ROBUST_KERNELS}")
-
-
-CHI2_95 = {1: 3.841, 2: 5.991, 3: 7.815}
-
-
-# the smallest variance a noise model takes (sigma 1 um, 1 urad): below every real sensor, so
-# that a model parameter that comes out as zero (a standing robot's odometry) gives a factor
-# of finite information instead of a singular system; the sensors' own floors are larger
-VARIANCE_FLOOR = 1e-12
-
-
-def floored(cov: NDArray[np.float64]) -> NDArray[np.float64]:
-    """``cov`` made symmetric with every eigenvalue at least :data:`VARIANCE_FLOOR`; raises
-    ValueError when it is not finite."""
-    cov = np.asarray(cov, dtype=float)
-    if not np.all(np.isfinite(cov)):
-        raise ValueError(f"a covariance that is not finite: {cov.tolist()}")
-    cov = 0.5 * (cov + cov.T)
-    w, V = np.linalg.eigh(cov)
-    if w.min() >= VARIANCE_FLOOR:
-        return cov
-    return (V * np.maximum(w, VARIANCE_FLOOR)) @ V.T
-
-
-def noise_model(cov: NDArray[np.float64], kernel: str = "none") -> gtsam.noiseModel.Base:
-    """Gaussian noise of covariance ``cov`` (:func:`floored`), robust with ``kernel`` (see
-    :func:`m_estimator`)."""
-    noise = gtsam.noiseModel.Gaussian.Covariance(floored(cov))
-    est = m_estimator(kernel, len(cov))
-    return noise if est is None else gtsam.noiseModel.Robust.Create(est, noise)
-
-
 def factor(
     kind: str,
     pose_key: int,
@@ -268,14 +221,14 @@ def factor(
     cal_jacobian: NDArray[np.float64] | None = None,
 ) -> gtsam.NonlinearFactor:
     """The GTSAM factor of a feature measured from pose ``pose_key`` of landmark ``lm_key``,
-    its noise robust with the kernel ``robust`` (:func:`m_estimator`); with a
+    its noise robust with the kernel ``robust`` (:func:`factors.noise.noise_model`); with a
     ``cal_jacobian`` (dz/dc, :class:`fgslam.slam.calibration.Calibration`) also of the
     calibration variable ``cal_key``."""
     if cal_jacobian is None:
         cal_key = None
     cal = {"cal_key": cal_key, "cal_jacobian": cal_jacobian}
     if kind == "point":
-        return point_factor(pose_key, lm_key, f.z, f.cov, robust=m_estimator(robust, 2), **cal)
+        return point_factor(pose_key, lm_key, f.z, f.cov, robust=robust, **cal)
     noise = noise_model(f.cov, robust)
     if kind == "line":
         return line_factor(pose_key, lm_key, f.z, noise, **cal)
