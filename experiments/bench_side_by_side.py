@@ -33,10 +33,9 @@ from fgslam.slam.runner import run_backends
 
 try:  # trees with scan matching: pin the paper's scheme
     from fgslam.config import with_scanmatch
+    from fgslam.sim.scenes import PAPER
 except ImportError:  # older trees (e.g. a6e0f28): the paper's scheme is the only one
-    with_scanmatch = None
-
-PAPER = {"odometry": "wheels", "keyframes": "every-scan", "loop_closures": "off"}
+    with_scanmatch, PAPER = None, None
 
 
 def main() -> None:

@@ -24,16 +24,17 @@ from pathlib import Path
 
 import numpy as np
 
+from factors.geometry import wrap_angles
 from fgslam.choices import CORNER_CHOICES, LASER_CALIBRATION_CHOICES, SONAR_CALIBRATION_CHOICES
 from fgslam.config import load_config, with_options, with_scanmatch
 from fgslam.evaluation import metrics as evaluation
+from fgslam.sim.scenes import PAPER
 from fgslam.sim.sensors import SimParams
 from fgslam.sim.simulate import calibration_truth, events, plan_run
 from fgslam.sim.world import load_world
 from fgslam.slam.runner import run_backends
 
 HERE = Path(__file__).resolve().parent
-PAPER = {"odometry": "wheels", "keyframes": "every-scan", "loop_closures": "off"}
 NO_SCALE = {"laser_sys_per_metre": 0.0}
 NO_LASER = {**NO_SCALE, "laser_sys_offset": 0.0, "mixed_pixel_prob": 0.0}
 NO_WHEELS = {"radius_error_right": 0.0, "radius_error_left": 0.0, "wheelbase_error": 0.0}
@@ -68,7 +69,7 @@ def one(
         ref = evaluation.interpolate_poses(res.truth_t, res.truth, res.times)
         covs = np.array(res.covs)
         e = res.poses - ref
-        e[:, 2] = (e[:, 2] + np.pi) % (2 * np.pi) - np.pi
+        e[:, 2] = wrap_angles(e[:, 2])
         z2 = e**2 / np.einsum("nii->ni", covs)
         scaled, k = evaluation.scale_about_start(res.poses, ref)
         cal = res.calibration

@@ -35,6 +35,7 @@ def run(args: argparse.Namespace) -> int:
 
     from fgslam.config import load_config
     from fgslam.sim import simulate_to_log
+    from fgslam.sim.scenes import PAPER
     from fgslam.sim.world import load_world
 
     out = Path(args.out)
@@ -49,8 +50,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"simulated the corridor run: {run.duration:.0f} s, {run.distance:.0f} m -> {log}")
     # the paper's experiment in the paper's scheme (wheel odometry, every scan a keyframe);
     # `fgslam compare` on the log runs the scan-matching defaults
-    paper = {"odometry": "wheels", "keyframes": "every-scan", "loop_closures": "off"}
-    compare_all(str(log), str(out), None, sections={"scanmatch": paper})
+    compare_all(str(log), str(out), None, sections={"scanmatch": dict(PAPER)})
     print((out / "comparison.md").read_text(), end="")
     print(
         f"demo done in {time.perf_counter() - t0:.0f} s: see {out}/comparison.png and "
