@@ -92,6 +92,29 @@ def add_reader_arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
+LOG_HELP = "log: fgslam, CARMEN (.gz or not) or a ROS 1/2 bag"
+
+
+def add_log_arguments(
+    p: argparse.ArgumentParser,
+    out_metavar: str,
+    out_help: str,
+    *,
+    log_help: str = LOG_HELP,
+    tolerant: bool = False,
+) -> None:
+    """The arguments of every command that reads a log, declared once: the positional LOG,
+    the options of the foreign-log readers (:func:`add_reader_arguments`), ``--tolerant``
+    where the command skips malformed records (``tolerant``) and the required ``--out``."""
+    p.add_argument("log", help=log_help)
+    add_reader_arguments(p)
+    if tolerant:
+        p.add_argument(
+            "--tolerant", action="store_true", help="skip malformed records instead of stopping"
+        )
+    p.add_argument("--out", required=True, metavar=out_metavar, help=out_help)
+
+
 def reader_options(args: argparse.Namespace) -> dict:
     """Options of the foreign-log readers (fgslam.io.formats.open_log) from the command line."""
     opts: dict = {

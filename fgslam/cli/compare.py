@@ -9,7 +9,7 @@ from pathlib import Path
 from fgslam.cli.common import (
     CONFIG_OVER_LOG_HELP,
     add_association_argument,
-    add_reader_arguments,
+    add_log_arguments,
     config_options,
     reader_options,
 )
@@ -26,11 +26,9 @@ def register(sub: argparse._SubParsersAction) -> None:
             "(trajectories and errors over time) into DIR. Any log `run` reads."
         ),
     )
-    p.add_argument("log", help="log: fgslam, CARMEN (.gz or not) or a ROS 1/2 bag")
-    add_reader_arguments(p)
+    add_log_arguments(p, "DIR", "output directory")
     p.add_argument("--config", metavar="ROBOT.toml", help=CONFIG_OVER_LOG_HELP)
     add_association_argument(p)
-    p.add_argument("--out", required=True, metavar="DIR", help="output directory")
     p.set_defaults(func=run)
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from collections import Counter
 
-from fgslam.cli.common import add_reader_arguments, reader_options, reader_warnings
+from fgslam.cli.common import add_log_arguments, reader_options, reader_warnings
 from fgslam.errors import UserError
 
 
@@ -21,12 +21,13 @@ def register(sub: argparse._SubParsersAction) -> None:
             "drive (0.1 mm per tick), reference poses as truth records. See docs/readers.md."
         ),
     )
-    p.add_argument("log", help="CARMEN log or ROS bag (or a native log, copied)")
-    add_reader_arguments(p)
-    p.add_argument(
-        "--tolerant", action="store_true", help="skip malformed records instead of stopping"
+    add_log_arguments(
+        p,
+        "FILE.log",
+        "log file to write",
+        log_help="CARMEN log or ROS bag (or a native log, copied)",
+        tolerant=True,
     )
-    p.add_argument("--out", required=True, metavar="FILE.log", help="log file to write")
     p.set_defaults(func=run)
 
 

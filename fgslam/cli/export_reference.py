@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from fgslam.cli.common import add_reader_arguments, reader_options
+from fgslam.cli.common import add_log_arguments, reader_options
 from fgslam.errors import UserError
 
 
@@ -18,12 +18,7 @@ def register(sub: argparse._SubParsersAction) -> None:
             "`evo_ape tum ref.tum out/trajectory.tum`."
         ),
     )
-    p.add_argument("log", help="log: fgslam, CARMEN (.gz or not) or a ROS 1/2 bag")
-    add_reader_arguments(p)
-    p.add_argument(
-        "--tolerant", action="store_true", help="skip malformed records instead of stopping"
-    )
-    p.add_argument("--out", required=True, metavar="FILE.tum", help="TUM file to write")
+    add_log_arguments(p, "FILE.tum", "TUM file to write", tolerant=True)
     p.set_defaults(func=run)
 
 

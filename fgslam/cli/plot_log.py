@@ -6,7 +6,7 @@ import argparse
 import os
 from pathlib import Path
 
-from fgslam.cli.common import add_reader_arguments, reader_options
+from fgslam.cli.common import add_log_arguments, reader_options
 from fgslam.errors import UserError
 
 
@@ -21,13 +21,8 @@ def register(sub: argparse._SubParsersAction) -> None:
             "reads."
         ),
     )
-    p.add_argument("log", help="log: fgslam, CARMEN (.gz or not) or a ROS 1/2 bag")
-    add_reader_arguments(p)
-    p.add_argument(
-        "--out",
-        required=True,
-        metavar="FILE.png",
-        help="image to write ('.png' added without a suffix; a folder: FOLDER/<log>.png)",
+    add_log_arguments(
+        p, "FILE.png", "image to write ('.png' added without a suffix; a folder: FOLDER/<log>.png)"
     )
     p.add_argument("--world", help="world JSON file, when the log's world is not built in")
     p.add_argument("--scan-time", type=float, help="time (s) of the scan to draw (default: middle)")

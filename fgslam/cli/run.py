@@ -11,7 +11,7 @@ from pathlib import Path
 from fgslam.cli.common import (
     CONFIG_OVER_LOG_HELP,
     add_association_argument,
-    add_reader_arguments,
+    add_log_arguments,
     config_options,
     print_summary,
     progress_bar,
@@ -31,8 +31,7 @@ def register(sub: argparse._SubParsersAction) -> None:
             "and map.png into --out."
         ),
     )
-    p.add_argument("log", help="log: fgslam, CARMEN (.gz or not) or a ROS 1/2 bag")
-    add_reader_arguments(p)
+    add_log_arguments(p, "DIR", "output directory", tolerant=True)
     p.add_argument(
         "--backend",
         choices=["ekf", "isam2", "batch"],
@@ -47,10 +46,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     add_association_argument(p)
     p.add_argument("--config", metavar="ROBOT.toml", help=CONFIG_OVER_LOG_HELP)
-    p.add_argument(
-        "--tolerant", action="store_true", help="skip malformed records instead of stopping"
-    )
-    p.add_argument("--out", required=True, metavar="DIR", help="output directory")
     p.set_defaults(func=run)
 
 
