@@ -20,10 +20,11 @@ TWO_PI = 2.0 * math.pi
 # math.remainder(a, 2 pi) except at -pi, which becomes pi.)
 #
 # wrap_angle_half_open: [-pi, pi), as (a + pi) mod 2 pi - pi, which rounds a + pi (the last
-# bits differ from wrap_angle's). The simulator and the scan matcher's reference fans were
-# written with it and keep it bit for bit: their outputs (simulated logs, the bearings a
-# covered direction is searched among) stay the same, and the scan match's response spread
-# takes the sign of an angle difference of exactly pi from it.
+# bits differ from wrap_angle's, and an angle an ulp below -pi comes out as pi). The
+# simulator and the scan matcher's reference fans were written with it and keep it bit for
+# bit: their outputs (simulated logs, the bearings a covered direction is searched among)
+# stay the same, and the scan match's response spread takes the sign of an angle difference
+# of exactly pi from it.
 
 
 def wrap_angle(a: float) -> float:
