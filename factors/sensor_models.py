@@ -46,7 +46,7 @@ class LaserRangeModel:
     """Laser range errors: random sigma (m) and the systematic estimate offset + per_metre*r,
     which the line and corner fits propagate (docs/design.md, 3.2)."""
 
-    sigma_range: float = 0.02
+    sigma_range: float  # the laser's ([laser] sigma_range of the configuration)
     systematic_offset: float = 0.01
     systematic_per_metre: float = 0.002
 

@@ -17,7 +17,6 @@ import dataclasses
 import math
 from collections import Counter, deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -39,12 +38,12 @@ from factors.sensor_models import (
     SonarErrorModel,
     time_registration_inflation,
 )
-from fgslam.config import RobotConfig
+from fgslam.config import FrontEndParams, RobotConfig, linked_from
 from fgslam.events import Event, LaserScan, OdometryEvent, SonarReading, scan_bearings
 from fgslam.frontend.features import SOURCES, End, Feature, OwnTime, ScanFeatures
 from fgslam.frontend.fits import FitRejected, corner_ranges, fit_corner, fit_line
 from fgslam.frontend.fusion import fuse, fused_jacobian
-from fgslam.frontend.segmentation import Segment, SegmentParams, segment_scan
+from fgslam.frontend.segmentation import Segment, segment_scan
 from fgslam.frontend.sonar import (
     Cluster,
     PoseHistory,
@@ -61,54 +60,14 @@ MODES = ("fused", "laser", "sonar")
 CHI2_2_99 = 9.21
 
 
-@dataclass(frozen=True)
-class FrontEndParams:
-    """Thresholds of the front end (m, rad, s)."""
-
-    segment: SegmentParams = field(default_factory=SegmentParams)
-    window: float = 6.0  # sonar readings this long before and after a scan
-    cluster_radius: float = 0.15  # single-linkage distance of sonar clusters
-    visible_dist: float = 0.3  # a cluster farther from every laser point is invisible
-    phantom_margin: float = 0.3  # echoes this far behind a laser surface are phantoms
-    support_dist: float = 0.1  # sonar echoes this close to a segment support it
-    right_angle_tol: float = math.radians(12)  # two lines form a right angle within this
-    corner_gap: float = 0.3  # laser only: line ends this close to the intersection
-    min_cluster: int = 3  # echoes in a sonar-only point cluster
-    sonar_step: float = 0.2  # sonar-only logs without laser: output step (s)
-    residual_level: float | None = None  # fits: residual covariance scaling (None: off)
-    corners: str = "with-lines"  # or "replace-lines", "off": FrontendConfig.corners
-    points_from: str = "any-echo"  # or "unfused-echoes": FrontendConfig.points_from
-    # which of the laser's range errors are estimated (LaserConfig.calibration: "off",
-    # "offset", "range"): their worst-case terms leave the covariances (the features always
-    # carry the Jacobians of both, Feature.Jc)
-    range_calibration: str = "off"
-    line_end_trim: float = 0.0  # FrontendConfig.line_end_trim (0: off)
-
-
 def frontend_params(cfg: RobotConfig, base: FrontEndParams | None = None) -> FrontEndParams:
-    """``base`` (default: the defaults) with the sensor-dependent thresholds of ``cfg``
-    (:func:`fgslam.config.frontend_thresholds`: configured, or derived from the laser; the
-    paper's PLS gives exactly the defaults)."""
-    from fgslam.config import frontend_thresholds
-
-    base = base or FrontEndParams()
-    th = frontend_thresholds(cfg)
-    seg = dataclasses.replace(
-        base.segment,
-        min_points=th["min_points"],
-        max_range=th["max_line_range"],
-        outlier=th["outlier"],
-        spread=th["spread"],
-    )
-    return dataclasses.replace(
-        base,
-        segment=seg,
-        residual_level=th["residual_level"],
-        corners=cfg.frontend.corners,
-        points_from=cfg.frontend.points_from,
-        range_calibration=cfg.laser.calibration,
-        line_end_trim=cfg.frontend.line_end_trim,
-    )
+    """The front end's parameters of ``cfg`` (its ``[features]`` section, the sensor-dependent
+    thresholds configured or derived from the laser: :func:`fgslam.config.frontend_thresholds`;
+    the paper's PLS gives exactly the defaults); given ``base``, ``base`` with those linked
+    parameters of ``cfg``."""
+    if base is None:
+        return cfg.features
+    return linked_from(base, cfg.features)
 
 
 class FrontEnd:

@@ -12,20 +12,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from fgslam.config import SegmentParams
 from fgslam.frontend.features import End
-
-
-@dataclass(frozen=True)
-class SegmentParams:
-    """Thresholds of the line growing (m unless stated)."""
-
-    min_points: int = 8  # a line needs more points than this to be kept
-    max_range: float = 8.0  # points farther than this end lines (and start none)
-    jump: float = 0.3  # range discontinuity: |r_i - r_{i-1}| > jump + jump_rel * r
-    jump_rel: float = 0.05
-    spread: float = 0.025  # std of point-to-line distances
-    outlier: float = 0.07  # range-model threshold for the next-3-points test
-    sonar_radius: float = 0.2  # a corner/edge cluster this close to a point ends the line
 
 
 @dataclass

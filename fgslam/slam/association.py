@@ -36,10 +36,11 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.stats import chi2
 
+from fgslam.config import ASSOCIATION_METHODS, AssociationParams
 from fgslam.frontend.features import Feature
 from fgslam.slam import geometry, models
 
-METHODS = ("jcbb", "nn")
+METHODS = ASSOCIATION_METHODS
 
 EstimateFn = Callable[[list[int]], tuple[dict[int, NDArray[np.float64]], NDArray[np.float64]]]
 
@@ -48,22 +49,6 @@ EstimateFn = Callable[[list[int]], tuple[dict[int, NDArray[np.float64]], NDArray
 def chi2_gate(dof: int, p: float = 0.99) -> float:
     """Chi-square quantile ``p`` for ``dof`` degrees of freedom."""
     return float(chi2.ppf(p, dof))
-
-
-@dataclass(frozen=True)
-class AssociationParams:
-    """Association thresholds; gates are probabilities, lengths m, angles rad."""
-
-    method: str = "jcbb"
-    gate_p: float = 0.99  # individual and joint chi-square gate
-    ambiguous_p: float = 0.9999  # a miss inside this gate is a near miss (ambiguous)
-    ambiguity_margin: float = 1.0  # chi-square units: two hypotheses "equally good"
-    merge_overlap: float = 0.4  # a measurement covering this much of two lines merges them
-    max_gap: float = 0.5  # a line measurement may extend a map line by leaving this gap
-    sonar_line_gap: float = 1.0  # a sonar plane's foot point within this of a map line
-    # residuals beyond these (rad or m, per component) cannot pass any sensible gate
-    pregate: tuple[float, float, float] = (0.35, 1.0, 0.6)
-    max_nodes: int = 1000  # branch-and-bound budget per scan (then: the best so far)
 
 
 @dataclass(frozen=True)

@@ -8,30 +8,23 @@ corners ``Pose2``, points ``Point2``. Factors: a prior on the first pose, preint
 odometry and the scan match between keyframes (``BetweenFactorPose2``; robust when both are
 there), verified loop closures (robust ``BetweenFactorPose2``), the landmark factors of
 ``factors`` and the merge ties, both with the robust noise model of the backend (one policy
-for iSAM2 and batch).
+for iSAM2 and batch, :func:`factors.noise.noise_model`).
 
 Association uses the current estimate and the *exact* joint marginal covariance of the last
 pose and the candidate landmarks (``ISAM2.jointMarginalCovariance``), propagated through the
 odometry of the new keyframe exactly as the EKF predicts; GTSAM's tangent-space covariances
 are rotated into world coordinates first.
 
-The graph never ends a run (docs/robustness.md): iSAM2 factorises by QR (GTSAM's Cholesky
-declares a system indeterminate when two consecutive pivots differ by more than 2^12, which a
-well-measured wall beside a poorly constrained direction along a corridor reaches on real
-logs); every new landmark carries a weak prior and every keyframe whose links are all robust a
-weak Gaussian link, so no variable is ever unconstrained; an update that still fails or gives
-a non-finite estimate is repaired (:meth:`GraphBackend._repair`: the offending new landmark
-removed, or a weak prior on the offending variable) with a warning naming it; a covariance
-query that fails falls back to the separate marginals, then to a wide covariance, counted.
+The graph never ends a run (docs/robustness.md): :mod:`fgslam.slam.graph_guard` (weak
+priors, repairs, covariance fallbacks). The modules by responsibility: this one the iSAM2
+backend; :mod:`~fgslam.slam.graph_keys` the variables; :mod:`~fgslam.slam.graph_solve` the
+linear solve, Levenberg-Marquardt, the batch smoother and the whole-graph solution, whose
+names this module re-exports; every noise model is :func:`factors.noise.noise_model`'s.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import math
-import re
-import time
-import warnings
 from collections import Counter
 
 import gtsam
@@ -45,83 +38,38 @@ from factors.odometry import (
     with_calibration,
 )
 from fgslam.choices import SONAR_TIMING_CHOICES
-from fgslam.errors import RunWarning, UserError
 from fgslam.frontend.features import Feature
 from fgslam.slam import models
 from fgslam.slam.backend import Backend, Estimate
 from fgslam.slam.calibration import Calibration, as_calibration
+from fgslam.slam.graph_guard import GraphGuard, prior_factor, weak_noise
+from fgslam.slam.graph_keys import C, L, X, blockdiag
+from fgslam.slam.graph_solve import (
+    BackendError,
+    BatchSmoother,
+    GraphSolution,
+    chi2_per_dof,
+    isam2_params,
+    levenberg_marquardt,
+    solve_linear,
+)
+
+# the graph's names as callers import them (fgslam.slam.graph is the backends' one door)
+__all__ = [
+    "BackendError",
+    "BatchSmoother",
+    "C",
+    "GraphBackend",
+    "GraphSolution",
+    "L",
+    "X",
+    "chi2_per_dof",
+    "levenberg_marquardt",
+    "solve_linear",
+]
 
 
-def X(k: int) -> int:
-    return gtsam.symbol("x", k)
-
-
-def L(i: int) -> int:
-    return gtsam.symbol("l", i)
-
-
-# the calibration errors (fgslam.slam.calibration.Calibration), one Vector for the whole run
-C = gtsam.symbol("c", 0)
-
-
-class BackendError(UserError):
-    """The optimiser could not solve the problem (reported to the user, never a traceback)."""
-
-
-# a weak prior's standard deviation (m and rad alike): information 1e-6, far below any
-# measurement's, so it moves no estimate measurably but no variable is ever unconstrained
-WEAK_SIGMA = 1e3
-# the covariance assumed when a marginal cannot be computed at all: wide (1 m, 1 rad), so
-# association gates stay open rather than closed; counted as covariance_fallbacks
-FALLBACK_VARIANCE = 1.0
-MAX_REPAIRS = 4  # attempts to repair one keyframe's update before giving up
-
-
-def weak_noise(dim: int) -> gtsam.noiseModel.Base:
-    """The noise of a weak prior or link of dimension ``dim`` (:data:`WEAK_SIGMA`)."""
-    return gtsam.noiseModel.Isotropic.Sigma(dim, WEAK_SIGMA)
-
-
-def _prior(key: int, value: object, noise: gtsam.noiseModel.Base) -> gtsam.NonlinearFactor:
-    """A prior on ``key`` at ``value`` (a ``Pose2`` or a vector)."""
-    if isinstance(value, gtsam.Pose2):
-        return gtsam.PriorFactorPose2(key, value, noise)
-    return gtsam.PriorFactorVector(key, np.asarray(value, dtype=float), noise)
-
-
-def isam2_params(
-    factorization: str, relinearize_threshold: float = 0.1, relinearize_skip: int = 10
-) -> gtsam.ISAM2Params:
-    """iSAM2's parameters: ``factorization`` "QR" or "CHOLESKY" (docs/robustness.md: QR
-    where Cholesky's pivot heuristic declares a sound system indeterminate)."""
-    params = gtsam.ISAM2Params()
-    params.setRelinearizeThreshold(relinearize_threshold)
-    params.relinearizeSkip = relinearize_skip
-    params.setFactorization(factorization)
-    return params
-
-
-def _culprit(reason: str) -> int | None:
-    """The key GTSAM named in an indeterminate-system message ("... (Symbol: l160)")."""
-    m = re.search(r"Symbol: ([a-zA-Z])(\d+)", reason)
-    return gtsam.symbol(m.group(1), int(m.group(2))) if m else None
-
-
-# the robot's poses are Pose2 variables like a corner's; the calibration is a plain vector
-POSE_VARIABLE = dataclasses.replace(models.KINDS["corner"], name="pose")
-
-
-def _key_name(key: int) -> str:
-    sym = gtsam.Symbol(key)
-    return f"{chr(sym.chr())}{sym.index()}"
-
-
-def _rot_block(th: float) -> NDArray[np.float64]:
-    c, s = math.cos(th), math.sin(th)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-class GraphBackend(Backend):
+class GraphBackend(GraphGuard, Backend):
     """iSAM2 online, one update per keyframe; :class:`BatchSmoother` solves the graph it
     built by Levenberg-Marquardt (offline), from its final estimate.
 
@@ -220,7 +168,7 @@ class GraphBackend(Backend):
         self._start_cov = np.array(cov, dtype=float)
         p = gtsam.Pose2(*pose)
         # the prior is on the body tangent: rotate the world covariance
-        R = _rot_block(pose[2])
+        R = models.rot_block(pose[2])
         self.new_graph.add(gtsam.PriorFactorPose2(X(0), p, models.noise_model(R.T @ cov @ R)))
         self.new_values.insert(X(0), p)
         if self.cal is not None:
@@ -348,10 +296,10 @@ class GraphBackend(Backend):
         J = self.joint_covariance(keys)
         # tangent (body) -> world for Pose2 blocks
         prev = self._prev
-        blocks = [_rot_block(prev.theta())] + ([np.eye(self.cal.dim)] if cal else [])
+        blocks = [models.rot_block(prev.theta())] + ([np.eye(self.cal.dim)] if cal else [])
         for lid in lids:
             blocks.append(models.KINDS[self.kinds[lid]].tangent_to_world(means[lid]))
-        T = _blockdiag(blocks)
+        T = blockdiag(blocks)
         P = T @ J @ T.T
         # propagate the pose through the new keyframe's odometry (as the EKF predicts)
         pre = self._pre
@@ -359,7 +307,7 @@ class GraphBackend(Backend):
         c, s = math.cos(th), math.sin(th)
         dx, dy = pre.delta.x(), pre.delta.y()
         F = np.array([[1.0, 0.0, -s * dx - c * dy], [0.0, 1.0, c * dx - s * dy], [0.0, 0.0, 1.0]])
-        G = _rot_block(th)
+        G = models.rot_block(th)
         if cal:  # the pose also moves with the calibration errors: rows [F, G J_c]
             Gc = G @ self.cal.wheel_jacobian(pre.calibration_jacobian)
             c = np.s_[3 : 3 + self.cal.dim]
@@ -388,7 +336,7 @@ class GraphBackend(Backend):
         self.new_values.insert(L(lid), value)
         self.new_graph.add(self._factor(lid, f))
         # never unconstrained, whatever the robust kernel makes of its measurements
-        self.new_graph.add(_prior(L(lid), value, weak_noise(models.DIM[f.kind])))
+        self.new_graph.add(prior_factor(L(lid), value, weak_noise(models.DIM[f.kind])))
 
     # a reading this far outside the last two keyframes' interval stays in the scan frame
     OWN_TIME_REACH = (-1.0, 2.0)
@@ -449,161 +397,6 @@ class GraphBackend(Backend):
             if self.cal.measured:  # for association (for_association)
                 self._c_cov = self.joint_covariance([C])
         self.trajectory.append((self._pending_t, self._pose_pred.copy(), None))
-
-    # ------------------------------------------------------------------ the guard
-
-    def take_removed(self) -> list[int]:
-        """The landmarks a repair removed since the last call (the map manager drops them)."""
-        out, self._removed = self._removed, []
-        return out
-
-    def _unsolved(self, isam: gtsam.ISAM2, keys) -> int | None:
-        """The first of ``keys`` (poses, landmarks, the calibration) whose estimate by
-        ``isam`` is not finite (a singular QR factorisation gives inf or NaN), or None."""
-        for key in keys:
-            if not isam.valueExists(key):
-                continue
-            if not np.all(np.isfinite(self._kind(key).read_isam(isam, key))):
-                return key
-        return None
-
-    def _update_guarded(self) -> None:
-        """iSAM2's update with this keyframe's factors and values; when GTSAM cannot solve
-        them (an indeterminate system) or the estimate of the new variables is not finite,
-        :meth:`_repair` the keyframe. Raises :class:`BackendError` only when every repair
-        failed."""
-        keys = sorted(set(self.new_values.keys()) | ({X(self.k)} if self.k >= 0 else set()))
-        try:
-            self.isam.update(self.new_graph, self.new_values)
-            bad = self._unsolved(self.isam, keys)
-            if bad is None:
-                return
-            reason = f"no finite estimate of {_key_name(bad)}"
-        except RuntimeError as exc:  # IndeterminantLinearSystemException and kin
-            bad, reason = None, _reason(exc)
-        try:
-            self._repair(reason, keys, bad)
-        except BackendError:  # back to the last good keyframe: this one's variables dropped
-            for key in self.new_values.keys():
-                if gtsam.Symbol(key).chr() == ord("l"):
-                    self.kinds.pop(gtsam.Symbol(key).index(), None)
-            if self.k > 0:
-                self.times.pop()
-            self.k -= 1
-            self.new_graph = gtsam.NonlinearFactorGraph()
-            self.new_values = gtsam.Values()
-            raise
-
-    def _repair(self, reason: str, keys: list[int], bad: int | None = None) -> None:
-        """Rebuild iSAM2 over the whole graph with this keyframe repaired: the variable GTSAM
-        named gets a weak prior, or, a landmark new in this keyframe, is removed with its
-        factors; failing that, all of this keyframe's new landmarks are removed and every
-        variable it touches gets a weak prior. Each repair is one line in :attr:`repairs`."""
-        try:  # the estimate so far (the failed update left iSAM2 unusable)
-            base = gtsam.Values(self.isam.getLinearizationPoint())
-        except RuntimeError:
-            base = gtsam.Values(self._est)
-        missing = {k for k in self.new_values.keys() if not base.exists(k)}
-        base.insert(self._values_without(self.new_values, set(self.new_values.keys()) - missing))
-        new_lms = {k for k in self.new_values.keys() if gtsam.Symbol(k).chr() == ord("l")}
-        drop: set[int] = set()
-        priors: set[int] = set()
-        what = ""
-        for attempt in range(MAX_REPAIRS + 1):
-            key = _culprit(reason) if bad is None else bad
-            if attempt == MAX_REPAIRS or key is None or key in drop or key in priors:
-                drop |= new_lms  # the last resort: no new landmark, weak priors around
-                priors |= {k for k in keys if k not in new_lms}
-                names = ", ".join(_key_name(k) for k in sorted(new_lms)) or "none"
-                what = f"new landmarks removed ({names}), weak priors on the keyframe's poses"
-            elif key in new_lms:
-                drop.add(key)
-                what = f"new landmark {_key_name(key)} removed"
-            else:
-                priors.add(key)
-                what = f"weak prior on {_key_name(key)}"
-            graph = gtsam.NonlinearFactorGraph()
-            graph.push_back(self.graph)
-            for i in range(self.new_graph.size()):
-                f = self.new_graph.at(i)
-                if f is not None and not drop.intersection(f.keys()):
-                    graph.add(f)
-            values = self._values_without(base, drop)
-            for key in priors:
-                graph.add(self._weak_prior(key, values))
-            isam = gtsam.ISAM2(self._params)
-            try:
-                isam.update(graph, values)
-                bad = self._unsolved(isam, [k for k in keys if k not in drop])
-                if bad is None:
-                    break
-                reason = f"no finite estimate of {_key_name(bad)}"
-            except RuntimeError as exc:
-                bad, reason = None, _reason(exc)
-        else:
-            self.failed = (
-                f"iSAM2 could not solve keyframe {self.k} (t = {self._pending_t:.2f} s) even "
-                f"after repairs: {reason}"
-            )
-            raise BackendError(self.failed)
-        msg = f"keyframe {self.k} (t = {self._pending_t:.2f} s): {what} ({reason})"
-        self.repairs.append(msg)
-        warnings.warn(f"the graph was repaired at {msg}", RunWarning, stacklevel=2)
-        self.stats["graph_repairs"] += 1
-        for key in drop:
-            lid = gtsam.Symbol(key).index()
-            self.kinds.pop(lid, None)
-            self._means.pop(lid, None)
-            self._touched.discard(lid)
-            self._removed.append(lid)
-            self.stats["landmarks_removed_by_repair"] += 1
-        self.isam = isam
-        # the rebuilt graph replaces the committed one (commit pushes nothing more)
-        self.graph = graph
-        self.new_graph = gtsam.NonlinearFactorGraph()
-        self._est = self.isam.calculateEstimate()
-        self._est_poses = None
-
-    def _values_without(self, base: gtsam.Values, drop: set[int]) -> gtsam.Values:
-        """A copy of ``base`` without the keys ``drop``."""
-        values = gtsam.Values()
-        for key in base.keys():
-            if key not in drop:
-                kind = self._kind(key)
-                values.insert(key, kind.value(kind.read(base, key)))
-        return values
-
-    def _weak_prior(self, key: int, values: gtsam.Values) -> gtsam.NonlinearFactor:
-        kind = self._kind(key)
-        return _prior(key, kind.value(kind.read(values, key)), weak_noise(kind.dim))
-
-    def _kind(self, key: int) -> models.Kind:
-        """How variable ``key`` is stored: a pose, the calibration vector or a landmark."""
-        sym = gtsam.Symbol(key)
-        if sym.chr() == ord("x"):
-            return POSE_VARIABLE
-        if key == C:
-            n = self.cal.dim
-            return dataclasses.replace(
-                models.KINDS["point"], name="calibration", dim=n, angular=(False,) * n
-            )
-        return models.KINDS[self.kinds[sym.index()]]
-
-    def joint_covariance(self, keys: list[int]) -> NDArray[np.float64]:
-        """iSAM2's joint marginal covariance of ``keys`` (tangent spaces); when GTSAM cannot
-        compute it, the block diagonal of the separate marginals, and failing those a wide
-        covariance (:data:`FALLBACK_VARIANCE`), each counted (``covariance_fallbacks``)."""
-        try:
-            return self.isam.jointMarginalCovariance(keys).fullMatrix()
-        except RuntimeError:
-            self.stats["covariance_fallbacks"] += 1
-        blocks = []
-        for key in keys:
-            try:
-                blocks.append(np.asarray(self.isam.marginalCovariance(key)))
-            except RuntimeError:
-                blocks.append(np.eye(self._kind(key).dim) * FALLBACK_VARIANCE)
-        return _blockdiag(blocks)
 
     # ------------------------------------------------------------------ results
 
@@ -666,229 +459,3 @@ class GraphBackend(Backend):
         """World-frame marginal covariances of the landmarks at the final estimate (after
         :meth:`finish`; before it, none)."""
         return self.solution.landmark_covariances() if self.solution is not None else {}
-
-
-class GraphSolution:
-    """A whole-graph estimate and what is read from it (iSAM2's converged one or the batch
-    solution): the trajectory with world-frame pose covariances and the landmarks'
-    covariances, from one factorisation of the whole graph (far cheaper than asking iSAM2 for
-    thousands of marginals one at a time); ``covariances`` False: none computed."""
-
-    def __init__(
-        self,
-        graph: gtsam.NonlinearFactorGraph,
-        values: gtsam.Values,
-        times: list[float],
-        kinds: dict[int, str],
-        covariances: bool = True,
-    ) -> None:
-        self.graph, self.values, self.times, self.kinds = graph, values, list(times), kinds
-        self.covariances = covariances
-        self._marg: gtsam.Marginals | None = None
-
-    def _marginals(self) -> gtsam.Marginals | gtsam.ISAM2:
-        """GTSAM's marginals of the whole graph (one Cholesky factorisation); where Cholesky
-        declares the system indeterminate (pivots more than 2^12 apart), one QR
-        factorisation by an iSAM2 over the same graph at the same estimate. Either answers
-        ``marginalCovariance(key)``; raises RuntimeError when neither can."""
-        if self._marg is None:
-            try:
-                self._marg = gtsam.Marginals(self.graph, self.values)
-            except RuntimeError:
-                isam = gtsam.ISAM2(isam2_params("QR"))
-                isam.update(self.graph, self.values)
-                self._marg = isam
-        return self._marg
-
-    def trajectory(self) -> list[tuple[float, NDArray[np.float64], NDArray[np.float64] | None]]:
-        covs = self._pose_covariances()
-        out = []
-        for k, t in enumerate(self.times):
-            p = self.values.atPose2(X(k))
-            out.append((t, np.array([p.x(), p.y(), p.theta()]), covs[k] if covs else None))
-        return out
-
-    def means(self) -> dict[int, NDArray[np.float64]]:
-        return {
-            lid: models.KINDS[kind].read(self.values, L(lid))
-            for lid, kind in self.kinds.items()
-            if self.values.exists(L(lid))
-        }
-
-    def _pose_covariances(self) -> list[NDArray[np.float64]] | None:
-        if not self.covariances:
-            return None
-        try:
-            m = self._marginals()
-        except RuntimeError:  # an ill-conditioned final graph: report no covariances
-            return None
-        out = []
-        try:  # a fallback factorisation may still refuse a query: report no covariances
-            for k in range(len(self.times)):
-                C = m.marginalCovariance(X(k))
-                R = _rot_block(self.values.atPose2(X(k)).theta())
-                out.append(R @ C @ R.T)
-        except RuntimeError:
-            return None
-        return out
-
-    def calibration(self) -> tuple[NDArray[np.float64], NDArray[np.float64] | None] | None:
-        """The calibration errors c and their marginal covariance (None if it cannot be
-        computed), or None when the graph has no calibration variable."""
-        if not self.values.exists(C):
-            return None
-        mean = np.asarray(self.values.atVector(C), dtype=float)
-        try:
-            return mean, self._marginals().marginalCovariance(C)
-        except RuntimeError:
-            return mean, None
-
-    def landmark_covariances(self) -> dict[int, NDArray[np.float64]]:
-        try:
-            m = self._marginals()
-        except RuntimeError:
-            return {}
-        out = {}
-        for lid, kind in self.kinds.items():
-            if not self.values.exists(L(lid)):
-                continue
-            R = models.KINDS[kind].tangent_to_world(models.KINDS[kind].read(self.values, L(lid)))
-            try:
-                out[lid] = R @ m.marginalCovariance(L(lid)) @ R.T
-            except RuntimeError:  # this landmark's marginal refused: left out
-                continue
-        return out
-
-
-class BatchSmoother:
-    """Offline smoothing: Levenberg-Marquardt over the whole graph that an iSAM2 run
-    (:class:`GraphBackend`) built, from iSAM2's final estimate: the same factors, noise and
-    robust policy, the association decisions iSAM2's estimate made. Results as a backend
-    gives them (:meth:`finish`, :meth:`means`, :meth:`landmark_covariances`); raises
-    :class:`BackendError` when the solve fails."""
-
-    name = "batch"
-
-    def __init__(self, source: GraphBackend) -> None:
-        t0 = time.perf_counter()
-        dims = {X(k): 3 for k in range(len(source.times))}
-        dims.update({L(lid): models.DIM[kind] for lid, kind in source.kinds.items()})
-        if source.cal is not None:
-            dims[C] = source.cal.dim
-        try:
-            values, self.iterations = levenberg_marquardt(
-                source.graph, source.final_estimate(), dims
-            )
-        except RuntimeError as exc:
-            raise BackendError(f"batch optimisation failed: {_reason(exc)}") from None
-        self.source = source
-        self.stats = getattr(source, "stats", {})
-        self.solution = GraphSolution(
-            source.graph, values, source.times, source.kinds, source.covariances
-        )
-        self.seconds = time.perf_counter() - t0
-
-    @property
-    def values(self) -> gtsam.Values:
-        return self.solution.values
-
-    def finish(self) -> list[tuple[float, NDArray[np.float64], NDArray[np.float64] | None]]:
-        return self.solution.trajectory()
-
-    def means(self) -> dict[int, NDArray[np.float64]]:
-        return self.solution.means()
-
-    def landmark_covariances(self) -> dict[int, NDArray[np.float64]]:
-        return self.solution.landmark_covariances()
-
-    def calibration_estimate(
-        self,
-    ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None] | None:
-        return self.solution.calibration()
-
-    def chi2_per_dof(self) -> float:
-        sol = self.solution
-        return chi2_per_dof(sol.graph, sol.values, len(sol.times), sol.kinds)
-
-
-def chi2_per_dof(
-    graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, poses: int, kinds: dict[int, str]
-) -> float:
-    """2 x graph error / (measurement dof - variable dof) of ``values`` (``poses`` poses and
-    the landmarks of ``kinds``); ~1 at the optimum of a consistent graph."""
-    m = sum(graph.at(i).dim() for i in range(graph.size()))
-    n = 3 * poses + sum(models.DIM[k] for k in kinds.values()) + 3 * values.exists(C)
-    return 2.0 * graph.error(values) / max(m - n, 1)
-
-
-def levenberg_marquardt(
-    graph: gtsam.NonlinearFactorGraph,
-    values: gtsam.Values,
-    dims: dict[int, int],
-    max_iterations: int = 30,
-    rel_tol: float = 1e-6,
-) -> tuple[gtsam.Values, int]:
-    """Levenberg-Marquardt with identity damping (lambda I on every variable's tangent),
-    solved by GTSAM's sparse elimination. (GTSAM's own optimizer classes spend far longer per
-    iteration on graphs of Python ``CustomFactor``s than one linearisation and one solve do.)
-    Returns the solution and the number of iterations."""
-    lam = 1e-5
-    err = graph.error(values)
-    it = 0
-    for it in range(1, max_iterations + 1):  # noqa: B007 - returned
-        lin = graph.linearize(values)
-        improved = False
-        while lam < 1e10:
-            damped = gtsam.GaussianFactorGraph()
-            damped.push_back(lin)
-            s = math.sqrt(lam)
-            for key, n in dims.items():
-                damped.add(key, s * np.eye(n), np.zeros(n), gtsam.noiseModel.Unit.Create(n))
-            new = values.retract(solve_linear(damped))
-            new_err = graph.error(new)
-            if new_err <= err:
-                improved = True
-                break
-            lam *= 10.0
-        if not improved:
-            break
-        rel = (err - new_err) / max(err, 1e-300)
-        values, err = new, new_err
-        lam = max(lam / 10.0, 1e-12)
-        if rel < rel_tol:
-            break
-    return values, it
-
-
-def solve_linear(lin: gtsam.GaussianFactorGraph) -> gtsam.VectorValues:
-    """The least-squares solution of ``lin``: by Cholesky (fast), or by QR where Cholesky
-    declares the system indeterminate (pivots more than 2^12 apart, which real graphs reach:
-    module doc); raises RuntimeError only when QR fails too."""
-    try:
-        return lin.optimize()
-    except RuntimeError:
-        return lin.optimize(gtsam.EliminateQR)
-
-
-def _reason(exc: BaseException) -> str:
-    """The first paragraph of a GTSAM exception's message on one line (the
-    indeterminate-system message starts with a blank line and names the variable on its
-    second line)."""
-    words = []
-    for line in str(exc).splitlines():
-        if line.strip():
-            words.append(line.strip())
-        elif words:
-            break
-    return " ".join(words) or f"{type(exc).__name__} (GTSAM gave no message)"
-
-
-def _blockdiag(blocks: list[NDArray[np.float64]]) -> NDArray[np.float64]:
-    n = sum(b.shape[0] for b in blocks)
-    T = np.zeros((n, n))
-    o = 0
-    for b in blocks:
-        k = b.shape[0]
-        T[o : o + k, o : o + k] = b
-        o += k
-    return T

@@ -28,72 +28,12 @@ from numpy.typing import NDArray
 from factors.geometry import between_poses, compose_poses, transform_points
 from factors.odometry import Preintegrated, relative_pose
 from factors.sensor_models import time_registration_inflation
-from fgslam.config import RobotConfig
+from fgslam.choices import SCANMATCH_CHOICES
+from fgslam.config import KeyframeParams
 from fgslam.scanmatch import Match, MatchParams, Reference, match
 
-POLICIES = ("motion", "every-scan")
-ODOMETRY = ("wheels", "scan", "both")
-
-
-@dataclass(frozen=True)
-class KeyframeParams:
-    """Keyframe policy and scan odometry. ``policy``: "motion" or "every-scan";
-    ``odometry``: which relative-pose measurements link keyframes ("wheels", "scan", "both");
-    ``distance`` (m), ``angle`` (rad): motion since the last keyframe that makes a new one;
-    ``min_overlap``: a scan overlapping the keyframe's scan less than this is a keyframe;
-    ``min_tracked``: a keyframe with at least ``min_features`` features of which fewer than
-    this many went to landmarks already in the map (confirmed or tentative) makes the next
-    scan a keyframe, so that a new place's features are seen again soon; ``local_map``: scans
-    are matched against the last this many keyframes' scans (placed by the scan odometry);
-    ``retry_window``: a rejected match is tried again with the search window this many times
-    larger (1: never); ``match_min_score``, ``match_min_overlap``: the consecutive matches'
-    rejection thresholds, below the matcher's (0.5 / 0.25, sized to tell places apart over a loop
-    closure's window): within the small window around the wheels' guess a right match of
-    scans 1 m apart in clutter often scores 0.2-0.5 (Intel: 11 % of the pairs rejected at
-    0.5, each a wheels-only link up to 14 deg off; at 0.2 / 0.1, 3 %, with 23 instead of 18
-    of 909 accepted pairs more than 10 cm or 2 deg from GMapping's poses: experiments/
-    README.md), and the ambiguity test still guards the corridors; ``motion_gate_p``: with
-    ``odometry`` "both", the EKF predicts with the scan match alone where it and the wheel
-    odometry disagree at this chi-square level (3 dof; :func:`factors.odometry.link_motions`;
-    the graph keeps both as robust factors)."""
-
-    policy: str = "motion"
-    odometry: str = "both"
-    distance: float = 0.5
-    angle: float = math.radians(20.0)
-    min_overlap: float = 0.1  # 0.35 until 2026-12-02, shadowed by the field below (a bug)
-    min_tracked: int = 2
-    min_features: int = 3
-    local_map: int = 1
-    retry_window: float = 1.0  # 2.5 recovered matches but took Intel from 0.23 to 1.0 m
-    match_min_score: float = 0.2
-    match_min_overlap: float = 0.1
-    motion_gate_p: float = 0.999
-
-    def __post_init__(self) -> None:
-        if self.policy not in POLICIES:
-            raise ValueError(f"unknown keyframe policy {self.policy!r}; expected one of {POLICIES}")
-        if self.odometry not in ODOMETRY:
-            raise ValueError(f"unknown odometry {self.odometry!r}; expected one of {ODOMETRY}")
-        if not 0.0 < self.motion_gate_p < 1.0:
-            raise ValueError(f"motion_gate_p must lie in (0, 1), got {self.motion_gate_p!r}")
-
-    @classmethod
-    def from_config(cls, cfg: RobotConfig) -> KeyframeParams:
-        """The keyframe policy of ``cfg``'s ``[scanmatch]`` section."""
-        sm = cfg.scanmatch
-        return cls(
-            policy=sm.keyframes,
-            odometry=sm.odometry,
-            distance=sm.keyframe_distance,
-            angle=math.radians(sm.keyframe_angle_deg),
-            motion_gate_p=sm.motion_gate_p,
-        )
-
-    @property
-    def matching(self) -> bool:
-        """Whether scans are matched at all."""
-        return self.odometry != "wheels" or self.policy == "motion"
+POLICIES = SCANMATCH_CHOICES["keyframes"]
+ODOMETRY = SCANMATCH_CHOICES["odometry"]
 
 
 @dataclass

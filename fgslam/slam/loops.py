@@ -60,58 +60,9 @@ from factors.geometry import (
     wrap_angles,
 )
 from factors.odometry import relative_pose
-from fgslam.config import RobotConfig
+from fgslam.config import LoopParams
 from fgslam.scanmatch import MatchParams, Reference, match
 from fgslam.slam.keyframes import _key, timing_inflation
-
-
-@dataclass(frozen=True)
-class LoopParams:
-    """Loop-closure search (m, rad). ``every``: try at most every this many keyframes."""
-
-    enabled: bool = True
-    radius: float = 4.0
-    min_travel: float = 8.0
-    max_candidates: int = 2
-    neighbours: int = 2
-    every: int = 1
-    max_search_xy: float = 2.0
-    # the window's floor: the estimate is overconfident after closures (Intel: 0.8 m off at
-    # 2500 s with 3 sigma below 0.3 m, every closure there "diverged"; 0.3 m / 5 deg before,
-    # Intel 0.076 -> 0.048 m, MIT and Freiburg unchanged: CHANGELOG.md, issue 14)
-    min_search_xy: float = 1.0
-    max_search_theta: float = math.radians(30.0)
-    min_search_theta: float = math.radians(10.0)
-    min_score: float = 0.55
-    min_overlap: float = 0.35
-    gate_p: float = 0.999
-    # the search's cost (module doc): no match over less view than this (0: always match);
-    # none at a place with a match rejected this many keyframes ago or less (0: always); local
-    # maps kept (0: none) while no keyframe of one moved more than this relative to it (m, rad)
-    min_view: float = 0.3
-    retry_after: int = 3
-    cache_size: int = 64
-    cache_xy: float = 0.01
-    cache_theta: float = math.radians(0.06)
-    see_through_margin: float = 0.3
-    max_see_through: float = 0.05
-    grey_see_through: float = 0.10  # more seen through: rejected; above max_...: in doubt
-    # False: weak, slightly seeing-through and inconsistent closures are rejected outright
-    # (the rule before; Intel 0.100 -> 0.051 m with it, CHANGELOG.md, issue 14)
-    doubt: bool = True
-    confident_xy: float = 0.3
-    confident_theta: float = math.radians(3.0)
-    confirm_window: int = 10
-    pair_xy: float = 0.2
-    pair_theta: float = math.radians(2.0)
-
-    @classmethod
-    def from_config(cls, cfg: RobotConfig) -> LoopParams:
-        """The loop-closure search of ``cfg``'s ``[scanmatch]`` section."""
-        sm = cfg.scanmatch
-        return cls(
-            enabled=sm.loop_closures == "on", radius=sm.loop_radius, min_travel=sm.loop_min_travel
-        )
 
 
 @dataclass

@@ -52,18 +52,20 @@ SENSORS = ("fused", "laser", "sonar")
 
 def make_backend(
     name: str,
-    motion_gate_p: float = 0.999,
+    cfg: RobotConfig,
+    keyframes: KeyframeParams | None = None,
     calibration: Calibration | NDArray[np.float64] | None = None,
-    sonar_timing: str = "scan-frame",
 ) -> Backend:
-    """A backend by name; ``motion_gate_p``: the EKF's gate between wheel odometry and a scan
-    match of one link (:meth:`EkfBackend.predict`); ``calibration``: the calibration errors
-    to estimate (:meth:`Calibration.from_config`; None: off);
-    ``sonar_timing``: the graph's (``SonarConfig.timing``; the EKF has only the scan frame)."""
+    """A backend by name, built from ``cfg``: the EKF's gate between wheel odometry and a scan
+    match of one link (``keyframes.motion_gate_p``, default ``cfg.keyframes``;
+    :meth:`EkfBackend.predict`), the graph's sonar timing (``cfg.sonar.timing``; the EKF has
+    only the scan frame); ``calibration``: the calibration errors to estimate
+    (:meth:`Calibration.from_config`; None: off)."""
     if name == "ekf":
-        return EkfBackend(motion_gate_p=motion_gate_p, calibration=calibration)
+        gate = (keyframes or KeyframeParams.from_config(cfg)).motion_gate_p
+        return EkfBackend(motion_gate_p=gate, calibration=calibration)
     if name in ("isam2", "batch"):  # batch: the iSAM2 graph, solved by LM at the end
-        return GraphBackend(calibration=calibration, sonar_timing=sonar_timing)
+        return GraphBackend(calibration=calibration, sonar_timing=cfg.sonar.timing)
     raise ValueError(f"unknown backend {name!r}; expected one of {BACKENDS}")
 
 
@@ -141,14 +143,13 @@ class _Session(SlamStep):
     def __init__(
         self,
         backend: str,
-        map_params: MapParams | None,
+        cfg: RobotConfig,
+        map_params: MapParams,
+        keyframes: KeyframeParams,
         loops: LoopCloser | None = None,
-        motion_gate_p: float = 0.999,
         calibration: Calibration | None = None,
-        sonar_timing: str = "scan-frame",
     ) -> None:
-        be = make_backend(backend, motion_gate_p, calibration, sonar_timing)
-        super().__init__(be, map_params, loops)
+        super().__init__(make_backend(backend, cfg, keyframes, calibration), map_params, loops)
         self.failed: dict | None = None
         self.filtered_times: list[float] = []  # s, one per entry of ``filtered``
 
@@ -233,9 +234,15 @@ class SlamPipeline:
         if association is not None:
             if association not in METHODS:
                 raise ValueError(f"unknown association {association!r}; expected one of {METHODS}")
-            map_params = replace(map_params or MapParams(), association=association)
+            if map_params is None:
+                # A known bug, kept (issue 32, item 2): given an association (as `fgslam run`
+                # always is) the map ignores the sensor-derived frontend.map_max_range and
+                # takes the PLS's 10 m; fixing it moves experiments/real_carmen.py's figures
+                # (its SICK LMS derives 6 m: docs/readers.md).
+                map_params = replace(MapParams.from_config(cfg), max_range=MapParams.max_range)
+            map_params = replace(map_params, association=association)
         self.sessions: dict[str, _Session] = {}
-        map_params = map_params or MapParams.from_config(cfg)  # sensor-derived thresholds
+        map_params = map_params or MapParams.from_config(cfg)
         kp = keyframes or KeyframeParams.from_config(cfg)
         lp = loops or LoopParams.from_config(cfg)
         if sensors == "sonar":  # the paper's scheme: no laser to match
@@ -249,12 +256,10 @@ class SlamPipeline:
         cal = Calibration.from_config(cfg)
         for b in backends:
             if b == "ekf":
-                self.sessions[b] = _Session("ekf", map_params, None, kp.motion_gate_p, cal)
+                self.sessions[b] = _Session("ekf", cfg, map_params, kp, None, cal)
             elif b in ("isam2", "batch") and "graph" not in self.sessions:
                 loop = LoopCloser(lp, mp, origin, cfg.laser.sigma_time) if lp.enabled else None
-                self.sessions["graph"] = _Session(
-                    "isam2", map_params, loop, calibration=cal, sonar_timing=cfg.sonar.timing
-                )
+                self.sessions["graph"] = _Session("isam2", cfg, map_params, kp, loop, cal)
         self.reorder = ReorderBuffer(reorder_window)
         self.frontend = FrontEnd(cfg, sensors, select=self._select)
         self._steps: deque = deque()  # the scan odometry's decisions, in scan order

@@ -22,7 +22,7 @@ from typing import IO, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from fgslam.config import Mount, RobotConfig, load_config
+from fgslam.config import SICK_LMS_SIGMA_RANGE, Mount, RobotConfig, load_config
 from fgslam.errors import ReaderError
 from fgslam.events import Event, OdometryEvent
 from fgslam.frontend.fits import RESIDUAL_TEST
@@ -154,7 +154,7 @@ def derived_config(
     fov_deg: float = 180.0,
     *,
     max_range: float = 80.0,
-    sigma_range: float = 0.01,
+    sigma_range: float = SICK_LMS_SIGMA_RANGE,
     range_resolution: float = 0.01,
     mount: tuple[float, float, float] = (0.0, 0.0, 0.0),
     name: str = "log robot",
