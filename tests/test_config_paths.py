@@ -13,6 +13,7 @@ from scipy.stats import chi2
 from fgslam import config as c
 from fgslam.choices import CHOICES
 from fgslam.config import ConfigError, load_config
+from fgslam.config.load import _CHOICES
 from fgslam.frontend.pipeline import FrontEndParams, frontend_params
 from fgslam.frontend.segmentation import SegmentParams
 from fgslam.scanmatch import MatchParams
@@ -40,7 +41,7 @@ def _other(value, key: str):
         return not value
     if isinstance(value, str):
         section, name = key.rsplit(".", 1)
-        choices = CHOICES.get((section, name)) or c._CHOICES[key]
+        choices = CHOICES.get((section, name)) or _CHOICES[key]
         return next(x for x in choices if x != value)
     if isinstance(value, tuple):
         return tuple(_other(v, key) for v in value)

@@ -145,7 +145,9 @@ def test_a_planted_cycle_is_found(tmp_path):
 # or of a layer below; within a layer, only its own folder or that folder's subfolders.
 LAYERS = (
     ("factors", "devices"),  # measurement models and device drivers: no fgslam import
-    ("fgslam",),  # the vocabulary at the package's root: config, events, errors, choices
+    ("fgslam.errors", "fgslam.choices"),  # the vocabulary: errors, the options' choices
+    ("fgslam.config",),  # every parameter, read from TOML
+    ("fgslam",),  # the rest of the package's root: events
     ("fgslam.scanmatch",),
     ("fgslam.frontend",),
     ("fgslam.io",),
