@@ -24,7 +24,7 @@ from scipy.spatial import cKDTree
 
 from factors.corner import corner_to_world, predict_corner
 from factors.geometry import wrap_angle
-from factors.line import line_residual, line_to_world
+from factors.line import flips, line_residual, line_to_world, normalize_line
 from factors.odometry import OdometryIntegrator
 from factors.point import (
     bearing_range_in_frame,
@@ -453,7 +453,7 @@ class FrontEnd:
                     zs = f.z + e  # the sonar line in the laser line's (alpha, d) form
                     if f.Jc is not None:
                         Js = self._sound_jacobian(pts, i)
-                        if abs(wrap_angle(zs[0] - pts.line[i, 0])) > math.pi / 2:
+                        if flips(wrap_angle(zs[0] - pts.line[i, 0])):
                             Js = -Js  # that form is (alpha + pi, -d) of pts.line's
                         f.Jc = fused_jacobian(f.cov, Cs, f.Jc, J_s=Js)
                     f.z, f.cov = fuse(f.z, f.cov, zs, Cs, angular=(True, False))
@@ -578,9 +578,9 @@ def _plane(
     tx, ty, tth = (float(v) for v in sensor)
     a = tth + bearing
     d = r + tx * math.cos(a) + ty * math.sin(a)
-    alpha = wrap_angle(a + math.pi if d < 0 else a)
+    alpha, d = normalize_line(a, d)
     J = np.array([[1.0, 0.0], [-tx * math.sin(alpha) + ty * math.cos(alpha), 1.0]])
-    return np.array([alpha, abs(d)]), J @ C @ J.T
+    return np.array([alpha, d]), J @ C @ J.T
 
 
 def _echo_range_jacobian(

@@ -9,11 +9,12 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from factors.geometry import wrap_angle
 from fgslam.scanmatch.basins import _other_basins, _seeds
 from fgslam.scanmatch.covariance import _covariance
 from fgslam.scanmatch.icp import _icp
 from fgslam.scanmatch.params import MatchParams
-from fgslam.scanmatch.points import _clean, _voxel, _wrap
+from fgslam.scanmatch.points import _clean, _voxel
 from fgslam.scanmatch.reference import Reference
 from fgslam.scanmatch.search import _search
 
@@ -60,7 +61,7 @@ def match(
     g = np.asarray(guess, dtype=float).ravel()
     if g.size < 3 or not np.isfinite(g[:3]).all() or np.abs(g[:2]).max() > 1e6:
         return _failed(np.zeros(3), "invalid guess", params)
-    g = np.array([g[0], g[1], _wrap(float(g[2]))])
+    g = np.array([g[0], g[1], wrap_angle(float(g[2]))])
     q = _clean(query)
     q = q[np.hypot(q[:, 0], q[:, 1]) < params.max_range] if len(q) else q
     need = max(params.min_points, 6)
@@ -101,7 +102,7 @@ def match(
     rms = math.sqrt(float(np.mean(icp.r**2)))
     cov, cov_ref, kappa, amb = _covariance(icp, resp, alts, owned, score, params)
     moved = pose - start
-    moved[2] = _wrap(float(moved[2]))
+    moved[2] = wrap_angle(float(moved[2]))
     reason = ""
     if not np.isfinite(pose).all() or not np.isfinite(cov).all():
         reason = "diverged (non-finite)"

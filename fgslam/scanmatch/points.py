@@ -9,7 +9,6 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 # the one angle wrap (docs/design.md, 2), under the name fgslam.scanmatch.matcher imports
-from factors.geometry import wrap_angle as _wrap  # noqa: F401
 
 
 def scan_points(

@@ -19,6 +19,7 @@ from scipy.stats import chi2
 
 from factors.geometry import wrap_angle, wrap_angles
 from factors.odometry import Preintegrated, fuse_motions, link_motions, with_calibration
+from fgslam.config import KeyframeParams
 from fgslam.frontend.features import Feature
 from fgslam.slam import models
 from fgslam.slam.backend import Backend, Estimate
@@ -45,7 +46,7 @@ class EkfBackend(Backend):
     def __init__(
         self,
         gate_p: float | None = 0.9999,
-        motion_gate_p: float = 0.999,
+        motion_gate_p: float = KeyframeParams.motion_gate_p,  # the configuration's default
         calibration: Calibration | NDArray[np.float64] | None = None,
     ) -> None:
         super().__init__()
