@@ -330,23 +330,19 @@ def test_a_few_percent_of_one_stream_lost_is_a_warning():
     from types import SimpleNamespace
 
     from fgslam.cli.run import _input_notes
+    from fgslam.io.readers.source import Problems
 
-    reader = SimpleNamespace(
-        problems=[],
-        summary=lambda: {
-            "skipped": 0,
-            "skipped_by_reason": {},
-            "timestamps_backwards": {"odometry": 50},
-            "problems": [],
-        },
-    )
+    # a native log's problems: records out of order passed on to the pipeline
+    problems = Problems(passes_out_of_order=True, report_keys=("timestamps",))
+    problems.backwards["odometry"] = 50
+    reader = SimpleNamespace(problems=problems, reference_kind=None)
     tap = SimpleNamespace(events=5100, by_type=Counter(OdometryEvent=2000, LaserScan=100))
     res = SimpleNamespace(stats={"events_out_of_order": 50})
     extra, notes = _input_notes(reader, tap, [res])
     assert extra["input"]["warning"].startswith("50 of 2000 odometry records (2.5 %)")
     assert notes[-1].startswith("WARNING: 50 of 2000 odometry records")
     res.stats = {}
-    reader.summary = lambda: {"skipped": 0, "timestamps_backwards": {}}
+    problems.backwards.clear()
     extra, notes = _input_notes(reader, tap, [res])
     assert notes == [] and "warning" not in extra["input"]
 

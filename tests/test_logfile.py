@@ -18,7 +18,7 @@ from hypothesis import strategies as st
 from fgslam.config import from_dict, load_config
 from fgslam.errors import UserError
 from fgslam.events import LaserScan, OdometryEvent, SonarEcho, SonarReading, TruthPose
-from fgslam.io import logfile
+from fgslam.io import logfile, logrecords
 from fgslam.io.logfile import (
     LogFormatError,
     LogReader,
@@ -311,7 +311,8 @@ def test_bad_records(tmp_path, records, expected):
     # tolerant mode skips exactly the one bad record
     with LogReader(path, tolerant=True) as reader:
         out = list(reader)
-    assert reader.skipped == 1 and len(reader.problems) == 1 and expected in reader.problems[0]
+    messages = reader.problems.messages
+    assert reader.skipped == 1 and len(messages) == 1 and expected in messages[0]
     assert sum(reader.skipped_by_reason.values()) == 1
     assert len(out) == sum(1 for r in records if r and not r.startswith("#")) - 1
 
@@ -333,13 +334,13 @@ def test_line_too_long(tmp_path, monkeypatch):
 
 
 def _header_lines():
-    return ["FGSLAM-LOG 1", f"CONFIG {logfile._json(CFG.to_dict())}", "WORLD w"]
+    return ["FGSLAM-LOG 1", f"CONFIG {logrecords._json(CFG.to_dict())}", "WORLD w"]
 
 
 def _cfg_with(**laser):
     d = CFG.to_dict()
     d["laser"].update(laser)
-    return f"CONFIG {logfile._json(d)}"
+    return f"CONFIG {logrecords._json(d)}"
 
 
 @pytest.mark.parametrize(
@@ -404,8 +405,9 @@ def test_tolerant_counts(tmp_path):
         "laser record": 1,
         "sonar record": 1,
     }
-    assert len(reader.problems) == logfile.MAX_PROBLEMS
-    assert reader.problems[0] == f"{path}:5: unknown record tag 'X' (expected O, L, S or T)"
+    messages = reader.problems.messages
+    assert len(messages) == logfile.MAX_PROBLEMS
+    assert messages[0] == f"{path}:5: unknown record tag 'X' (expected O, L, S or T)"
 
 
 # ------------------------------------------------------------------------------ fuzzing

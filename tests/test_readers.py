@@ -197,7 +197,7 @@ def test_carmen_bad_records(tmp_path):
     assert scans == 30
     assert log.problems.skipped_by_reason["bad FLASER record"] == 1
     assert log.problems.skipped_by_reason["unknown record RAWLASER1"] == 1
-    assert "bad.log" in log.problems.problems[0]
+    assert "bad.log" in log.problems.messages[0]
 
 
 @pytest.mark.parametrize("damage", ["truncate", "corrupt"])

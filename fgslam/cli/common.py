@@ -129,14 +129,11 @@ def reader_options(args: argparse.Namespace) -> dict:
     return opts
 
 
-def reader_warnings(summary: dict) -> list[str]:
-    """A reader's one-line warnings (``summary["warnings"]`` of the foreign readers; for a
-    native log read in record order for want of a usable clock, that)."""
-    if "warnings" in summary:
-        return list(summary["warnings"])
-    from fgslam.io.readers.common import clock_warnings
-
-    return clock_warnings(summary.get("timestamps"))
+def reader_warnings(reader) -> list[str]:
+    """A reader's one-line warnings, the same for every format (its clock, its input, one per
+    kind of implausible record: ``reader.problems.warnings()``), for every command that reads
+    a log to print as ``warning: ...``."""
+    return reader.problems.warnings()
 
 
 def add_association_argument(p: argparse.ArgumentParser) -> None:

@@ -47,15 +47,13 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"cannot write {args.out}: {exc.strerror or exc}") from None
     kinds = ", ".join(f"{n} {k}" for k, n in sorted(counts.items())) or "no events"
     print(f"wrote {args.out}: {kinds}")
-    problems = getattr(reader, "problems", None)
-    summary = reader.summary() if isinstance(problems, list) else problems.summary()
+    summary = reader.problems.summary()
     if summary["skipped"]:
         print(f"skipped {summary['skipped']} bad records: {summary['skipped_by_reason']}")
     if summary["timestamps_backwards"]:
         print(f"timestamps going backwards (kept as they are): {summary['timestamps_backwards']}")
-    for w in reader_warnings(summary):
+    for w in reader_warnings(reader):
         print(f"warning: {w}")
-    kind = getattr(reader, "reference_kind", None)
-    if kind == "reference":
+    if reader.reference_kind == "reference":
         print("truth records hold the log's reference poses (not ground truth)")
     return 0

@@ -134,8 +134,7 @@ def _log_world(reader):
     """The simulator's world of a native log whose world is built in, else None."""
     from fgslam.sim.world import BUILTIN_WORLDS, load_world
 
-    name = getattr(reader, "world", None)
-    return load_world(name) if name in BUILTIN_WORLDS else None
+    return load_world(reader.world) if reader.world in BUILTIN_WORLDS else None
 
 
 WARN_FRACTION = 0.01  # records not used (skipped, dropped) beyond this fraction: a warning
@@ -152,20 +151,14 @@ def _input_notes(reader, tap: _Tap, results: list) -> tuple[dict, list[str]]:
     as bad, stamped earlier than the record before them, put back in order or dropped as too
     late by the pipeline; a warning when more than WARN_FRACTION of them were not used. Where
     the comparison trajectory is a reference rather than ground truth, that too."""
-    problems = getattr(reader, "problems", None)
-    if problems is not None and not isinstance(problems, list):
-        summary = problems.summary()
-    elif hasattr(reader, "summary"):
-        summary = reader.summary()
-    else:
-        summary = {}
+    problems = reader.problems  # every reader's (fgslam.io.readers.source.Problems)
+    summary = problems.summary()
     stats = results[0].stats if results else {}
     dropped = int(stats.get("events_out_of_order", 0))
     reordered = int(stats.get("events_reordered", 0))
     by_reason = dict(summary.get("skipped_by_reason", {}))
-    # records of types a foreign reader does not use (CARMEN NEFF, ...) are not data lost
-    foreign = problems is not None and not isinstance(problems, list)
-    ignored = {k: n for k, n in by_reason.items() if foreign and k.startswith("unknown record")}
+    # records of types the reader does not use (CARMEN NEFF, ...) are not data lost
+    ignored = dict(problems.ignored)
     skipped = int(summary.get("skipped", 0)) - sum(ignored.values())
     back = summary.get("timestamps_backwards", {})
     total = tap.events + skipped
@@ -201,8 +194,9 @@ def _input_notes(reader, tap: _Tap, results: list) -> tuple[dict, list[str]]:
         )
         info["warning"] = msg
         notes.append(f"WARNING: {msg}")
-    elif not foreign:  # a few lost records of one kind (odometry) can matter more than
-        # their number says; foreign readers carry or drop such records themselves and say so
+    elif problems.passes_out_of_order:  # a few lost records of one kind (odometry) can
+        # matter more than their number says; readers that carry or drop such records
+        # themselves say so
         for stream, n in sorted(back.items()):
             of = tap.by_type.get(_STREAM_TYPES.get(stream, ""), 0)
             if of and n > WARN_FRACTION * of:
@@ -214,18 +208,15 @@ def _input_notes(reader, tap: _Tap, results: list) -> tuple[dict, list[str]]:
                 notes.append(f"WARNING: {msg}")
                 break
     extra: dict = {"input": info}
-    kind = getattr(reader, "reference_kind", None)
+    kind = reader.reference_kind
     if kind:
         extra["truth_source"] = kind
         if kind == "reference":
             notes.append("note: ATE is against the log's reference trajectory, not ground truth")
-    if problems is not None and not isinstance(problems, list):
-        extra["reader"] = summary  # a foreign reader's own account
-        notes += [f"warning: {w}" for w in summary.get("warnings", [])]
-    elif "timestamps" in summary or "plausibility" in summary:  # a native log's checks
-        keys = ("timestamps", "plausibility", "warnings")  # (docs/readers.md)
-        extra["reader"] = {k: summary[k] for k in keys if k in summary}
-        notes += [f"warning: {w}" for w in reader_warnings(summary)]
+    section = problems.report()  # the reader's own account (docs/readers.md)
+    if section is not None:
+        extra["reader"] = section
+    notes += [f"warning: {w}" for w in reader_warnings(reader)]
     return extra, notes
 
 

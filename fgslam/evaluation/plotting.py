@@ -43,13 +43,14 @@ def plot_log(
     the world (``world``, or the log's when it is built in), the true or reference path, the
     odometry-only path, and one laser scan with the sonar readings of the 6 s before and
     after it (placed with the true poses when the log has them, else with odometry). The
-    image is written atomically. Returns a few numbers about the log."""
+    image is written atomically. Returns a few numbers about the log, and the reader's
+    warnings (``"warnings"``: ``problems.warnings()``, for the console)."""
     from fgslam.io.formats import open_log
     from fgslam.sim.world import BUILTIN_WORLDS, load_world
 
     reader = open_log(path, **(options or {}))
     cfg = reader.config
-    if world is None and getattr(reader, "world", None) in BUILTIN_WORLDS:
+    if world is None and reader.world in BUILTIN_WORLDS:
         world = load_world(reader.world)
     t_truth, truth, t_odo, ticks = [], [], [], []
     scans: list[LaserScan] = []
@@ -95,6 +96,7 @@ def plot_log(
             odo_path[:, 0], odo_path[:, 1], "--", color="tab:orange", lw=1.0, label="odometry only"
         )
     info = {"scans": len(scans), "sonar_readings": len(sonar), "odometry_samples": len(t_odo)}
+    info["warnings"] = reader.problems.warnings()
     if scans:
         if scan_time is None:
             scan_time = scans[len(scans) // 2].t
@@ -141,7 +143,7 @@ def plot_log(
     ax.set_aspect("equal")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
-    ax.set_title(f"{Path(path).name}: world '{getattr(reader, 'world', '?')}'")
+    ax.set_title(f"{Path(path).name}: world '{reader.world}'")
     handles, labels = ax.get_legend_handles_labels()
     uniq = dict(zip(labels, handles, strict=True))
     ax.legend(uniq.values(), uniq.keys(), loc="best", fontsize=7)

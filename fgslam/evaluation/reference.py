@@ -83,5 +83,5 @@ def load_reference(path: str | Path, **options: Any) -> tuple[np.ndarray, np.nda
         raise UserError(f"{path}: the log has no truth or reference poses")
     t_a, poses_a = np.array(t, dtype=float), np.array(poses, dtype=float)
     _check_reference(path, t_a, poses_a)
-    kind = getattr(reader, "reference_kind", None) or "ground truth"
+    kind = reader.reference_kind or "ground truth"
     return t_a, poses_a, reader.meta.get("true_map") or {}, kind

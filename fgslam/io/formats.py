@@ -1,6 +1,7 @@
-"""Which reader reads a file: :func:`sniff_format` and :func:`open_log`, which returns something
-that iterates events and has ``config``, ``world``, ``meta`` (and, for foreign logs,
-``reference_kind`` and ``problems``):
+"""Which reader reads a file: :func:`sniff_format` and :func:`open_log`, which returns a
+:class:`~fgslam.io.readers.source.LogSource` whatever the format (events by iteration,
+``config``, ``world``, ``meta``, ``reference_kind``, ``clock_record`` and ``problems``, one
+:class:`~fgslam.io.readers.source.Problems` type for all):
 
 - native fgslam logs (:class:`fgslam.io.logfile.LogReader`);
 - CARMEN logs (:class:`fgslam.io.readers.carmen.CarmenLog`);
@@ -17,6 +18,7 @@ from typing import Any
 
 from fgslam.io.readers.common import ReaderError, StrPath, head_text
 from fgslam.io.readers.sanity import BACKWARDS_TOLERANCE, INDEX_PERIOD, NoUsableClock
+from fgslam.io.readers.source import LogSource
 
 FORMATS = ("fgslam", "carmen", "ros", "victoria")
 
@@ -48,7 +50,7 @@ def sniff_format(path: StrPath) -> str:
     )
 
 
-def open_log(path: StrPath, format: str | None = None, **options: Any):
+def open_log(path: StrPath, format: str | None = None, **options: Any) -> LogSource:
     """Open a log of any supported sensor-log format; ``options`` go to the reader
     (``tolerant``, ``strict``, ``timestamps``, ``limits`` and ``backwards_tolerance`` for
     all; ``timestamps``: fgslam ``auto``/``log``/``index``, CARMEN ``auto``/``ipc``/``logger``/
@@ -102,7 +104,7 @@ def open_log(path: StrPath, format: str | None = None, **options: Any):
     raise ReaderError(f"unknown format {fmt!r}; expected one of {FORMATS}")
 
 
-def _open_native(path: StrPath, options: dict[str, Any]):
+def _open_native(path: StrPath, options: dict[str, Any]) -> LogSource:
     """A native log (:class:`fgslam.io.logfile.LogReader`) with its clock checked and its events
     through the plausibility rules; without a usable clock (``timestamps`` auto) it is read
     in record order (``index``) unless ``strict``, the reason in ``clock_record["fallback"]``

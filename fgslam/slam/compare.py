@@ -63,8 +63,7 @@ def _run_mode(
             yield ev
 
     results = run_backends(events(), cfg, backends, sensors, association=association)
-    problems = getattr(reader, "problems", None)
-    summary = reader.summary() if isinstance(problems, list) else problems.summary()
+    summary = reader.problems.summary()
     return results, {"events": dict(counts), "scans": sample.scans, "reader": summary}
 
 
@@ -92,8 +91,8 @@ def compare(
     out.mkdir(parents=True, exist_ok=True)
     reader, cfg = _open(str(log), config, options, sections)
     true_map = reader.meta.get("true_map")
-    world = load_world(reader.world) if getattr(reader, "world", None) in BUILTIN_WORLDS else None
-    truth_kind = getattr(reader, "reference_kind", None) or "ground truth"
+    world = load_world(reader.world) if reader.world in BUILTIN_WORLDS else None
+    truth_kind = reader.reference_kind or "ground truth"
     workers = workers or min(len(sensors), os.cpu_count() or 1)
     results: list[SlamResult] = []
     info: dict[str, Any] = {}

@@ -1,7 +1,10 @@
-"""What every foreign-log reader shares: the error type, the bookkeeping of skipped records and
-backward timestamps, the robot configuration derived from the data, the virtual
-differential drive that turns pose increments into encoder ticks, and the hold of stale
-odometry (:class:`StaleOdometryHold`).
+"""What every foreign-log reader shares: the error type, reading text files (gzip looked
+through), the robot configuration derived from the data and the one-line warnings about an
+input. The reader interface and its problems are in :mod:`fgslam.io.readers.source`; the
+odometry of logs that give it as poses (the virtual differential drive, the hold of stale
+odometry, implausible jumps, the file-order chain of the relations benchmark) in
+:mod:`fgslam.io.readers.odometry`. Both are imported here too, where readers and tests have
+always found them.
 
 Readers yield the project's own events (:mod:`fgslam.events`), so everything downstream (front
 end, runner, backends, ``fgslam convert``) works on them unchanged. Units SI, REP-103 frames.
@@ -14,95 +17,69 @@ import gzip
 import io
 import math
 import zlib
-from collections import Counter
 from collections.abc import Iterator
-from os import PathLike
 from typing import IO, Any
-
-import numpy as np
-from numpy.typing import NDArray
 
 from fgslam.config import SICK_LMS_SIGMA_RANGE, Mount, RobotConfig, load_config
 from fgslam.errors import ReaderError
-from fgslam.events import Event, OdometryEvent
 from fgslam.frontend.fits import RESIDUAL_TEST
-from fgslam.io.readers.plausibility import Findings, Rules, check_events
-from fgslam.io.readers.sanity import INDEX_PERIOD, OdometryLimits, implausible, usage
+from fgslam.io.readers.odometry import (
+    MAX_SAMPLES,
+    VIRTUAL_ENCODER_STEPS,
+    VIRTUAL_K,
+    VIRTUAL_K_D,
+    VIRTUAL_METRES_PER_TICK,
+    VIRTUAL_STEP,
+    VIRTUAL_TURN,
+    VIRTUAL_WHEELBASE,
+    Increment,
+    OdometryChain,
+    OdometryJumps,
+    StaleOdometryHold,
+    VirtualDrive,
+    compose,
+    relative,
+)
+from fgslam.io.readers.sanity import OdometryLimits
+from fgslam.io.readers.source import (
+    MAX_PROBLEMS,
+    LogSource,
+    Problems,
+    Source,
+    StrPath,
+    clock_warnings,
+)
 
-StrPath = str | PathLike[str]
-Increment = tuple[float, float, float] | np.ndarray  # (dx m, dy m, dtheta rad)
-MAX_PROBLEMS = 20
+__all__ = [  # the names readers, tests and docs import from here
+    "MAX_PROBLEMS",
+    "MAX_SAMPLES",
+    "VIRTUAL_ENCODER_STEPS",
+    "VIRTUAL_K",
+    "VIRTUAL_K_D",
+    "VIRTUAL_METRES_PER_TICK",
+    "VIRTUAL_STEP",
+    "VIRTUAL_TURN",
+    "VIRTUAL_WHEELBASE",
+    "Increment",
+    "LogSource",
+    "OdometryChain",
+    "OdometryJumps",
+    "Problems",
+    "ReaderError",
+    "Source",
+    "StaleOdometryHold",
+    "StrPath",
+    "VirtualDrive",
+    "clock_warnings",
+    "compose",
+    "derived_config",
+    "head_text",
+    "input_warnings",
+    "open_lines",
+    "relative",
+]
 
-# The virtual differential drive of logs that give odometry as poses (CARMEN, ROS):
-# 0.1 mm per tick on a 2 m wheelbase; every increment is cut into samples of at most 5 cm of
-# travel and 2 deg of turn, so that the eq 5 noise (per sample) depends on the path, not on
-# the log's odometry rate. k = 0.5 per sample gives sigma 11 cm per wheel, 8 cm along track
-# and 4.5 deg of heading per metre driven straight, and about 5 cm of travel for a 30 deg turn
-# on the spot (the wide virtual wheelbase makes turns on the spot uncertain in position too,
-# as real ones are; with 0.5 m, iSAM2 met near-singular between factors on the Intel log).
-VIRTUAL_METRES_PER_TICK = 1e-4
-VIRTUAL_WHEELBASE = 2.0
-VIRTUAL_ENCODER_STEPS = 10000
-VIRTUAL_K = 0.5  # sigma(L) = k L per sample, each wheel (k_r, k_l)
-VIRTUAL_K_D = 0.1  # sigma(D) = k_d D per sample (acts on the turn of the sample)
-VIRTUAL_STEP = 0.05  # m of travel per sample at most
-VIRTUAL_TURN = math.radians(2.0)  # rad of turn per sample at most
 RESIDUAL_LEVEL = RESIDUAL_TEST  # real logs: fit covariances scaled by their residual
-MAX_SAMPLES = 200000  # samples of one increment at most (10 km, 400 turns)
-
-
-class Problems:
-    """Counts of what a reader skipped or found odd, with the first messages kept.
-
-    ``skipped_by_reason``: records not turned into events, by reason (``"unknown record
-    NEFF"``, ``"bad FLASER record"``, ...); ``backwards``: timestamps earlier than the one
-    before them, by record type (the events keep their order and stamps: never reordered)."""
-
-    def __init__(self) -> None:
-        self.skipped_by_reason: Counter = Counter()
-        self.backwards: Counter = Counter()
-        self.problems: list[str] = []
-        self.notes: dict[str, Any] = {}  # e.g. "timestamps", "odometry" (docs/readers.md)
-        # the plausibility findings of the current pass (fgslam.io.readers.plausibility.Findings)
-        self.findings: Any = None
-
-    @property
-    def skipped(self) -> int:
-        return sum(self.skipped_by_reason.values())
-
-    def new_pass(self) -> None:
-        """Forget the counts of an earlier pass over the events (a reader read again counts
-        each record once); the notes of the reader's set-up stay."""
-        self.skipped_by_reason.clear()
-        self.backwards.clear()
-        self.problems.clear()
-
-    def skip(self, reason: str, message: str | None = None) -> None:
-        self.skipped_by_reason[reason] += 1
-        if message and len(self.problems) < MAX_PROBLEMS:
-            self.problems.append(message)
-
-    def backward(self, stream: str, detail: str, line: int | None = None) -> None:
-        """A record of ``stream`` stamped before the last one delivered (``detail`` names it),
-        dropped or its motion carried by the reader: counted in ``backwards`` and noted as a
-        stamp out of order (:mod:`fgslam.io.readers.plausibility`; with ``--strict`` an
-        error)."""
-        if self.findings is not None:
-            self.findings.note("order", detail, line=line)
-        self.backwards[stream] += 1
-
-    def summary(self) -> dict[str, Any]:
-        out = {
-            "skipped": self.skipped,
-            "skipped_by_reason": dict(self.skipped_by_reason),
-            "timestamps_backwards": dict(self.backwards),
-            "problems": list(self.problems),
-            **self.notes,
-        }
-        if self.findings is not None:  # one warning per kind of implausible record
-            out["plausibility"] = self.findings.summary()
-            out["warnings"] = list(self.notes.get("warnings", [])) + self.findings.warnings()
-        return out
 
 
 def open_lines(path: StrPath) -> Iterator[tuple[int, str]]:
@@ -204,271 +181,7 @@ def derived_config(
     )
 
 
-def relative(a: tuple[float, float, float], b: tuple[float, float, float]) -> np.ndarray:
-    """inverse(a) * b for poses (x, y, theta): b in the frame of a, heading wrapped."""
-    c, s = math.cos(a[2]), math.sin(a[2])
-    dx, dy = b[0] - a[0], b[1] - a[1]
-    dth = math.remainder(b[2] - a[2], 2 * math.pi)
-    return np.array([c * dx + s * dy, -s * dx + c * dy, dth])
-
-
-def compose(a: tuple[float, float, float], d: tuple[float, float, float]) -> np.ndarray:
-    """a * d for poses (x, y, theta)."""
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return np.array(
-        [
-            a[0] + c * d[0] - s * d[1],
-            a[1] + s * d[0] + c * d[1],
-            math.remainder(a[2] + d[2], 2 * math.pi),
-        ]
-    )
-
-
-class VirtualDrive:
-    """Pose increments -> encoder ticks of a virtual differential drive.
-
-    An increment (dx, dy, dtheta) in the frame of the previous pose is driven as ``n`` equal
-    samples (``n`` the least with at most ``VIRTUAL_STEP`` of travel and ``VIRTUAL_TURN`` of
-    turn each), each of heading change ``dtheta / n`` and a chord length chosen so that the
-    ``n`` samples (eqs 1-3) end at distance ``hypot(dx, dy)`` (backwards when ``dx < 0``),
-    wheel distances ``L_r = c + dtheta D / 2n``, ``L_l = c - dtheta D / 2n``. The heading change
-    is exact; the position is exact when the robot moved along the chord of its turn (no
-    sideways slip), otherwise off by ``hypot(dx, dy) |atan2(dy, dx) - dtheta/2|``. Ticks are
-    rounded with the remainder carried to the next sample, so the quantisation (0.1 mm per
-    tick) never accumulates. The samples are stamped evenly over (previous stamp, t].
-    """
-
-    def __init__(self, cfg: RobotConfig) -> None:
-        o = cfg.odometry
-        self.D = o.wheelbase
-        self.mr, self.ml = o.metres_per_tick_right, o.metres_per_tick_left
-        self.cum_r = self.cum_l = 0.0
-        self.tick_r = self.tick_l = 0
-        self.t: float | None = None
-        self.travel = 0.0  # m of wheel travel driven (distance plus turning), for warnings
-
-    def _tick(self, t: float, lr: float, ll: float) -> OdometryEvent:
-        self.travel += abs(lr + ll) / 2 + abs(lr - ll) / 2
-        self.cum_r += lr
-        self.cum_l += ll
-        tr, tl = round(self.cum_r / self.mr), round(self.cum_l / self.ml)
-        ev = OdometryEvent(t, tr - self.tick_r, tl - self.tick_l)
-        self.tick_r, self.tick_l = tr, tl
-        return ev
-
-    def ticks(
-        self,
-        t: float,
-        inc: tuple[float, float, float],
-        after: float = -math.inf,
-        hole: float = math.inf,
-    ) -> list[OdometryEvent]:
-        """The odometry samples of one increment ending at time ``t``, stamped no earlier
-        than ``after`` (the last event delivered); after a gap longer than ``hole`` s they
-        are all stamped ``t`` (the motion's time is unknown: the gap stays visible). An
-        increment that would take more than :data:`MAX_SAMPLES` samples is a
-        :class:`ReaderError` (readers bound motion before they get here)."""
-        dx, dy, dth = (float(v) for v in inc)
-        dist = math.hypot(dx, dy)
-        if not (dist <= MAX_SAMPLES * VIRTUAL_STEP and abs(dth) <= MAX_SAMPLES * VIRTUAL_TURN):
-            raise ReaderError(f"odometry increment of {dist:.3g} m, {dth:.3g} rad: too large")
-        n = max(1, math.ceil(dist / VIRTUAL_STEP - 1e-9), math.ceil(abs(dth) / VIRTUAL_TURN - 1e-9))
-        h = dth / n
-        # n chords of length c turning by h each span 2 c sin(n h/2) / (2 sin(h/2))
-        ratio = math.sin(h / 2) / math.sin(dth / 2) if abs(dth) > 1e-12 else 1.0 / n
-        c = math.copysign(dist * ratio, dx) if dx < 0 else dist * ratio
-        gap = t - self.t if self.t is not None else 0.0
-        t = max(t, after)
-        t0 = max(self.t, after) if self.t is not None and self.t < t else t
-        if gap > hole:
-            t0 = t
-        self.t = t
-        return [
-            self._tick(
-                t0 + (t - t0) * (i + 1) / n if i < n - 1 else t,
-                c + 0.5 * h * self.D,
-                c - 0.5 * h * self.D,
-            )
-            for i in range(n)
-        ]
-
-
-class StaleOdometryHold:
-    """Stale odometry: a pose stream that freezes and then catches up, spread over its span.
-
-    Odometry given as poses sometimes repeats its last pose while the robot moves and then
-    jumps (MIT CSAIL's FLASER fields repeat for 0.6-1.1 s while the robot turns, then jump by
-    up to 85 deg in one record). Read as it is, that is "no motion" with full confidence and
-    then the whole motion in one scan interval. So an odometry record that repeats the last
-    pose (a zero increment) is held while the last change lies at most ``stale`` s back
-    (:class:`~fgslam.io.readers.sanity.OdometryLimits`), and so are the events after it (scans,
-    sonar readings):
-
-    - when the odometry moves again, its increment is spread evenly over the span since the
-      last change (samples of the :class:`VirtualDrive`) and the held events are delivered
-      among its samples, in time order; counted in ``notes`` as ``stale_spans`` and
-      ``stale_seconds`` (s, the span from the last change to the catch-up);
-    - when it repeats for longer than ``stale`` s, the robot stood still (or it is a hole):
-      the repeat's zero sample and the held events are delivered as they were.
-
-    A robot that stops and starts again within ``stale`` s is thus seen creeping over the
-    stop; its first increment is small. Events leave in the order of their stamps, which never
-    go below the last one delivered. Feed every odometry record to :meth:`odometry`, every
-    other event to :meth:`event`, and call :meth:`flush` at the end of the log.
-    """
-
-    def __init__(self, drive: VirtualDrive, limits: OdometryLimits, notes: dict[str, Any]) -> None:
-        self.drive = drive
-        self.stale = limits.stale  # s
-        self.hole = limits.hole  # s
-        self.notes = notes
-        notes.setdefault("stale_spans", 0)
-        notes.setdefault("stale_seconds", 0.0)
-        self.held: list[Event] = []
-        self.repeat_t: float | None = None  # s, stamp of the last repeat held
-        self.last_out = -math.inf  # s, stamp of the last event delivered
-
-    def holding(self, t: float) -> bool:
-        """Whether a repeat (or an event after one) at ``t`` s is held: the last change of the
-        odometry lies at most ``stale`` s back."""
-        return self.drive.t is not None and t - self.drive.t <= self.stale
-
-    def odometry(self, t: float, inc: Increment, *, sample: bool = True) -> list[Event]:
-        """The events an odometry record at ``t`` s with increment ``inc`` (dx m, dy m, dtheta
-        rad, over the last record) releases. ``sample`` False: the record is no odometry
-        record of its own (a scan's odometry field): a repeat that is a stop gives no zero
-        samples, only the held events."""
-        if np.any(np.asarray(inc) != 0):
-            return self._motion(t, inc)
-        if self.holding(t):
-            self.repeat_t = t
-            return []
-        if not sample:
-            return self._release()
-        return self._stood_still() + self._motion(t, inc)
-
-    def event(self, ev: Event, *, needs_odometry: bool = True) -> list[Event]:
-        """The events a non-odometry event releases: none while it is held (a repeat lies
-        before it within ``stale`` s of the last change), else the event itself (after the
-        held ones when the repeat turned out to be a stop). ``needs_odometry`` False: an
-        event placed without the odometry (a ground-truth pose) waits only behind held
-        events, to keep the time order, and never ends a hold."""
-        out: list[Event] = []
-        if not needs_odometry:
-            if self.held:
-                self.held.append(ev)
-                return []
-        elif self.repeat_t is not None:
-            if self.holding(ev.t):
-                self.held.append(ev)
-                return []
-            out = self._stood_still()
-        self.last_out = max(self.last_out, ev.t)
-        return [*out, ev]
-
-    def flush(self) -> list[Event]:
-        """The events still held at the end of the log, as they were."""
-        return self._release()
-
-    def _stood_still(self) -> list[Event]:
-        """The pending repeat was a stop: its zero sample, then the held events."""
-        out = self._motion(self.repeat_t, np.zeros(3)) if self.repeat_t is not None else []
-        return out + self._release()
-
-    def _motion(self, t: float, inc: Increment) -> list[Event]:
-        """The samples of ``inc`` ending at ``t`` s (spread back over the held span) and the
-        held events, in time order (a sample before an event of the same stamp)."""
-        start = self.drive.t
-        hole = self.stale if self.held else self.hole  # a held span is spread, not a hole
-        ticks = self.drive.ticks(t, inc, after=self.last_out, hole=hole)
-        if self.held and start is not None and np.any(np.asarray(inc) != 0):
-            self.notes["stale_spans"] += 1
-            self.notes["stale_seconds"] = round(self.notes["stale_seconds"] + t - start, 3)
-        out = sorted([*ticks, *self.held], key=lambda e: (e.t, not isinstance(e, OdometryEvent)))
-        self.held, self.repeat_t = [], None
-        if out:
-            self.last_out = max(self.last_out, out[-1].t)
-        return out
-
-    def _release(self) -> list[Event]:
-        out, self.held, self.repeat_t = self.held, [], None
-        if out:
-            self.last_out = max(self.last_out, out[-1].t)
-        return out
-
-
-class OdometryJumps:
-    """Implausible odometry in a stream of poses (x m, y m, theta rad) with stamps (s): what
-    :meth:`step` returns is the increment to deliver, in the frame of the last pose used, or
-    None for a pose skipped as implausible (:func:`fgslam.io.readers.sanity.implausible`).
-
-    A jump is dropped, never carried into the motion: the pose after a skipped one is taken
-    relative to whichever of the last good pose and the skipped pose it lies nearer to, by
-    the fraction of the plausible motion it takes (:func:`fgslam.io.readers.sanity.usage`).
-    Nearer the last good pose (a spike), the odometry continues from it; nearer the skipped
-    pose (the odometry jumped and stayed, as ``intel.orig.bag``'s /odom does twice), it
-    continues from the skipped pose (counted as ``rebased``): in both cases the jump itself
-    is not motion, and the motion before and after it is kept. ``clock`` False (index
-    stamps): only the distance of a step is checked. A pose with a stamp that is not finite
-    (a sporadic junk stamp) keeps the stamp of the pose before it."""
-
-    def __init__(self, limits: OdometryLimits, clock: bool = True) -> None:
-        self.limits = limits
-        self.clock = clock
-        self.base: tuple[float, float, float] | None = None  # the last pose used
-        self.base_t = -math.inf  # s, its stamp
-        self.jumped: tuple[float, float, float] | None = None  # the last pose skipped
-        self.jumped_t = -math.inf
-        self.rebased = 0
-
-    def _dt(self, t: float, since: float) -> float | None:
-        return t - since if self.clock else None
-
-    def step(self, pose: tuple[float, float, float], t: float) -> tuple[np.ndarray | None, str]:
-        """(increment or None, why the pose is implausible: "" when it is not) for the next
-        pose at ``t`` s; the first pose gives a zero increment."""
-        t_known = t if math.isfinite(t) else None
-        if self.base is None:
-            self.base, self.base_t = pose, t_known if t_known is not None else self.base_t
-            return np.zeros(3), ""
-        inc = relative(self.base, pose)
-        why = implausible(inc, self._dt(t, self.base_t), self.limits)
-        if self.jumped is not None:
-            from_jump = relative(self.jumped, pose)
-            dt_jump = self._dt(t, self.jumped_t)
-            if implausible(from_jump, dt_jump, self.limits) is None and (
-                why is not None
-                or usage(from_jump, dt_jump, self.limits)
-                < usage(inc, self._dt(t, self.base_t), self.limits)
-            ):
-                self.rebased += 1  # the odometry jumped and stayed: continue from there
-                self._use(pose, t_known)
-                return from_jump, ""
-        if why is not None:
-            self.jumped = pose
-            self.jumped_t = t_known if t_known is not None else self.base_t
-            return None, why
-        self._use(pose, t_known)
-        return inc, ""
-
-    def _use(self, pose: tuple[float, float, float], t: float | None) -> None:
-        self.base, self.jumped = pose, None
-        if t is not None:
-            self.base_t = t
-
-
 MIN_SCANS = 10  # fewer scans than this: "almost nothing to process"
-
-
-def clock_warnings(clock: dict[str, Any] | None) -> list[str]:
-    """The one-line warning of a log read in record order for want of a usable clock
-    (``clock``: the record of :func:`fgslam.io.readers.sanity.choose_clock`), or none."""
-    if not clock or not clock.get("fallback"):
-        return []
-    return [
-        f"{clock['fallback']}: read in record order, scans {INDEX_PERIOD:g} s apart "
-        "(--timestamps index), odometry speeds not checked; --strict refuses such a log"
-    ]
 
 
 def input_warnings(
@@ -502,76 +215,3 @@ def input_warnings(
             + "; --strict refuses such a log)"
         )
     return out
-
-
-class Source:
-    """A readable log: ``config``, ``world``, ``meta``, ``reference_kind`` (``"ground truth"``,
-    ``"reference"`` or None: what the TruthPose events are), and events by iteration;
-    ``problems`` counts what was skipped. The attributes ``skipped`` and ``skipped_by_reason``
-    mirror :class:`fgslam.io.logfile.LogReader`.
-
-    A reader implements :meth:`events`; iterating the source passes them through the
-    plausibility rules (:func:`fgslam.io.readers.plausibility.check_events`, with the reader's
-    configuration, ``limits`` and ``clock``), the findings of the pass in
-    ``problems.findings`` (with ``strict`` the first is an error)."""
-
-    format = "?"
-    config: RobotConfig
-    world: str = ""
-    reference_kind: str | None = None
-    strict = False  # refuse what is otherwise read with a warning (--strict)
-
-    def __init__(self, path: StrPath) -> None:
-        self.path = path
-        self.name = str(path)
-        self.meta: dict[str, Any] = {}
-        self.problems = Problems()
-
-    @property
-    def skipped(self) -> int:
-        return self.problems.skipped
-
-    @property
-    def skipped_by_reason(self) -> dict[str, int]:
-        return dict(self.problems.skipped_by_reason)
-
-    def __iter__(self) -> Iterator[Event]:
-        rules = Rules.of(
-            self.config, getattr(self, "limits", None), getattr(self, "clock", None) != "index"
-        )
-        findings = Findings(self.name, self.strict, self.problems.skip, rules)
-        self.problems.findings = findings
-        return check_events(self.events(), rules, findings)
-
-    def events(self) -> Iterator[Event]:
-        """The reader's events of one pass, unchecked."""
-        raise NotImplementedError
-
-    def close(self) -> None:
-        pass
-
-    def __enter__(self) -> Source:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-
-@dataclasses.dataclass
-class OdometryChain:
-    """A log's odometry records in file order (:func:`fgslam.io.readers.carmen.odometry_chain`):
-    each record's stamp ``t`` (s), the index of the scan at or before it in the file
-    (``scan``, -1 before the first), whether it is a scan (``is_scan``), the cumulative
-    odometry at it (``poses``, heading unwrapped), and the scans' stamps and reference
-    poses (``scan_t``, ``scan_poses``)."""
-
-    t: NDArray[np.float64]
-    scan: NDArray[np.int64]
-    is_scan: NDArray[np.bool_]
-    poses: NDArray[np.float64]
-    scan_t: NDArray[np.float64]
-    scan_poses: NDArray[np.float64]
-
-    def scan_records(self) -> NDArray[np.int64]:
-        """Record index of each scan."""
-        return np.flatnonzero(self.is_scan)

@@ -32,7 +32,7 @@ The rules:
 - ``order``: a record stamped earlier than the record of its kind before it (streams:
   odometry, laser, sonar, truth). A native log passes it on (the pipeline's reorder buffer
   puts it back in order or drops it); the foreign readers drop it or carry its motion at
-  reading and note it (:meth:`fgslam.io.readers.common.Problems.backward`).
+  reading and note it (:meth:`fgslam.io.readers.source.Problems.backward`).
 """
 
 from __future__ import annotations

@@ -580,9 +580,7 @@ class RosBag(Source):
                             last = max(last, t)
                         continue
                     if inc is None:  # a jump: dropped (OdometryJumps)
-                        pr.findings.note(
-                            "odometry", f"{conn.topic} at t={t:.6f}: {why}", skipped=True
-                        )
+                        pr.note("odometry", f"{conn.topic} at t={t:.6f}: {why}", skipped=True)
                         self._odo_notes["implausible"] += 1
                         continue
                     carried = compose(carried, inc)

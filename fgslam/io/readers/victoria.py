@@ -143,7 +143,7 @@ def read_victoria(path: StrPath, tolerant: bool = False) -> VictoriaPark:
                     continue
                 out.sightings.setdefault(i, []).append(s)
             else:
-                pr.skip(f"unknown record {f[0][:20]}")
+                pr.ignore(f"unknown record {f[0][:20]}")
         except _Bad as exc:
             msg = f"{name}:{lineno}: {exc}"
             if not tolerant:
