@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from fgslam.cli.common import add_log_arguments, reader_options
+from fgslam.cli.common import add_log_arguments, reader_options, reader_warnings
 from fgslam.errors import UserError
 
 
@@ -41,10 +41,12 @@ def run(args: argparse.Namespace) -> int:
             poses.append((ev.x, ev.y, ev.theta))
     if not t:
         raise UserError(f"{args.log}: the log has no truth or reference poses")
-    kind = getattr(reader, "reference_kind", None) or "ground truth"
+    kind = reader.reference_kind or "ground truth"
     with atomic_path(args.out) as tmp:
         write_tum(tmp, t, poses)
     print(f"wrote {args.out}: {len(t)} poses ({kind}) over {t[-1] - t[0]:.1f} s")
     if backwards:
         print(f"left out {backwards} poses stamped earlier than the one before them")
+    for w in reader_warnings(reader):  # the reader's, as every command prints them
+        print(f"warning: {w}")
     return 0

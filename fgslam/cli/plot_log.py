@@ -42,6 +42,8 @@ def run(args: argparse.Namespace) -> int:
         f"wrote {args.out}: {info['scans']} laser scans, {info['sonar_readings']} sonar cycles"
         f"{extra}"
     )
+    for w in info["warnings"]:  # the reader's, as every command prints them
+        print(f"warning: {w}")
     return 0
 
 
