@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 from devices_helpers import wait_until
 
-from devices.emulators import Faults
 from devices.odometry import OdometryFrame
+from devices.pty_emulator import Faults
 from devices.sick import LaserFrame, encode_b0, parse_b0
 from devices.sonar import SonarFrame
 from fgslam.cli import main

@@ -13,8 +13,9 @@ from devices_helpers import wait_until
 
 from devices.clock import Clock
 from devices.driver import DeviceError, DeviceRunner
-from devices.emulators import Faults, OdometryEmulator, SickEmulator, SonarEmulator
+from devices.emulators import OdometryEmulator, SickEmulator, SonarEmulator
 from devices.odometry import OdometryBoard
+from devices.pty_emulator import Faults
 from devices.raw import RawRecorder
 from devices.replay import ReplayFile
 from devices.sick import NAK, Control, SickPLS, build_telegram

@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 from devices_helpers import cpu_hogs, wait_until
 
-from devices.emulators import Faults
+from devices.pty_emulator import Faults
 from devices.replay import ReplayFile
 from fgslam.config import load_config
 from fgslam.events import LaserScan, OdometryEvent, SonarReading, TruthPose

@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from devices.clock import Clock
-from devices.emulators import Faults
+from devices.pty_emulator import Faults
 from fgslam.config import RobotConfig
 from fgslam.errors import UserError
 from fgslam.events import Event

@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from devices.emulators import Faults
+from devices.pty_emulator import Faults
 from fgslam.config import RobotConfig
 from fgslam.errors import UserError
 from fgslam.events import Event, SonarReading

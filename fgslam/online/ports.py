@@ -35,15 +35,10 @@ import numpy as np
 
 from devices.clock import Clock
 from devices.driver import DeviceRunner, Measurement, SerialDevice
-from devices.emulators import (
-    Faults,
-    OdometryEmulator,
-    Playback,
-    PtyEmulator,
-    SickEmulator,
-    SonarEmulator,
-)
+from devices.emulators import OdometryEmulator, SickEmulator, SonarEmulator
 from devices.odometry import OdometryBoard, OdometryFrame
+from devices.playback import Playback
+from devices.pty_emulator import Faults, PtyEmulator
 from devices.raw import RawFormatError, RawRecorder, show
 from devices.replay import ReplayFile
 from devices.sick import FIRST_SPECIAL, LaserFrame, SickPLS
@@ -426,13 +421,13 @@ def start_emulators(
     (``fgslam.sim``: the planned run and the sensor models) at ``speed`` times real time.
 
     The ports are symlinks ``<link_dir>/laser``, ``sonar0``, ``sonar1``, ..., ``odometry``
-    (a temporary directory by default). ``faults``: one :class:`devices.emulators.Faults`
+    (a temporary directory by default). ``faults``: one :class:`devices.pty_emulator.Faults`
     for every device (each gets its own seed) or a dict by device name. With
     ``wait_for_hosts`` the run starts once every device's host is streaming (at most
     ``wait_timeout`` wall s). Drivers in the same process should share ``Emulation.clock``.
     The first ``lead`` s of the simulation (inf: the whole run) are computed before this
     returns and the rest ahead of the playback in a thread of its own, so that the devices
-    keep their times on a busy host (:class:`devices.emulators.Playback`).
+    keep their times on a busy host (:class:`devices.playback.Playback`).
     """
     clock = clock or Clock(speed)
     run = plan_run(world, cfg, seed, params, duration)
