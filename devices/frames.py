@@ -141,6 +141,10 @@ class FramedReceiver:
     def stamp(self, device_us: int, t_host: float) -> float:
         return self.time.map(device_us, t_host) if self.device_clock else t_host
 
+    def recording_header(self) -> dict[str, Any]:
+        """What replay needs of this receiver to decode a recording the same way."""
+        return {"device_clock": self.device_clock}
+
     def _measurement(self, frame: Frame, t: float) -> Measurement:
         raise NotImplementedError
 
@@ -182,7 +186,8 @@ class FramedReceiver:
 class FramedDevice(SerialDevice):
     """Driver base of a framed-protocol device: :meth:`open` opens the port (8N1 at
     ``baud``), asks INFO (checking the device kind), and sends START. Commands wait
-    ``reply_timeout`` s and are sent again up to ``retries`` times."""
+    ``reply_timeout`` s and are sent again up to ``retries`` times. The devices pass their
+    receiver and these options on."""
 
     sync = b""
     device_kind = 0
@@ -204,6 +209,10 @@ class FramedDevice(SerialDevice):
         self.retries = retries
         self.info: DeviceInfo | None = None
         self._seq = 0
+
+    def recording_header(self) -> dict[str, Any]:
+        """The port's header and the receiver's (:meth:`FramedReceiver.recording_header`)."""
+        return {**super().recording_header(), **self.receiver.recording_header()}
 
     def command(self, ctype: int, payload: bytes = b"", retries: int | None = None) -> Frame:
         """Send a command and return its reply frame; DeviceError on an error reply or when

@@ -15,18 +15,15 @@ import struct
 from dataclasses import dataclass
 from typing import Any
 
-from devices.clock import Clock
 from devices.driver import Measurement
 from devices.frames import (
     DATA_ODOMETRY,
-    DEFAULT_BAUD,
     KIND_ODOMETRY,
     ODOMETRY_SYNC,
     Frame,
     FramedDevice,
     FramedReceiver,
 )
-from devices.raw import RawRecorder
 
 _SAMPLE = struct.Struct("<IhhB")
 FAULT_RIGHT, FAULT_LEFT, SATURATED = 0x01, 0x02, 0x04
@@ -82,28 +79,7 @@ class OdometryBoard(FramedDevice):
     sync = ODOMETRY_SYNC
     device_kind = KIND_ODOMETRY
 
-    def __init__(
-        self,
-        port: str,
-        *,
-        baud: int = DEFAULT_BAUD,
-        clock: Clock | None = None,
-        recorder: RawRecorder | None = None,
-        device_clock: bool = True,
-        reply_timeout: float = 0.3,
-        retries: int = 2,
-    ) -> None:
-        super().__init__(
-            port,
-            OdometryReceiver(device_clock),
-            baud=baud,
-            clock=clock,
-            recorder=recorder,
-            reply_timeout=reply_timeout,
-            retries=retries,
-        )
-
-    def recording_header(self) -> dict[str, Any]:
-        h = super().recording_header()
-        h.update(device_clock=self.receiver.device_clock)
-        return h
+    def __init__(self, port: str, *, device_clock: bool = True, **options: Any) -> None:
+        """``options``: :class:`devices.frames.FramedDevice`'s (baud, clock, recorder,
+        reply_timeout, retries)."""
+        super().__init__(port, OdometryReceiver(device_clock), **options)

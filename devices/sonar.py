@@ -19,18 +19,15 @@ import struct
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
-from devices.clock import Clock
 from devices.driver import Measurement
 from devices.frames import (
     DATA_SONAR,
-    DEFAULT_BAUD,
     KIND_SONAR,
     SONAR_SYNC,
     Frame,
     FramedDevice,
     FramedReceiver,
 )
-from devices.raw import RawRecorder
 
 KINDS = ("plane", "corner", "edge")
 _HEAD = struct.Struct("<IhB")
@@ -106,9 +103,7 @@ class SonarReceiver(FramedReceiver):
         self.array = array
 
     def recording_header(self) -> dict[str, Any]:
-        h = super().recording_header()
-        h.update(array=self.array, device_clock=self.receiver.device_clock)
-        return h
+        return {"array": self.array, **super().recording_header()}
 
     def _measurement(self, frame: Frame, t: float) -> SonarFrame:
         t_us, pan, echoes = decode_reading(frame.payload)
@@ -124,29 +119,9 @@ class SonarArray(FramedDevice):
     device_kind = KIND_SONAR
 
     def __init__(
-        self,
-        port: str,
-        array: int = 0,
-        *,
-        baud: int = DEFAULT_BAUD,
-        clock: Clock | None = None,
-        recorder: RawRecorder | None = None,
-        device_clock: bool = True,
-        reply_timeout: float = 0.3,
-        retries: int = 2,
+        self, port: str, array: int = 0, *, device_clock: bool = True, **options: Any
     ) -> None:
-        super().__init__(
-            port,
-            SonarReceiver(array, device_clock),
-            baud=baud,
-            clock=clock,
-            recorder=recorder,
-            reply_timeout=reply_timeout,
-            retries=retries,
-        )
+        """``options``: :class:`devices.frames.FramedDevice`'s (baud, clock, recorder,
+        reply_timeout, retries)."""
+        super().__init__(port, SonarReceiver(array, device_clock), **options)
         self.array = array
-
-    def recording_header(self) -> dict[str, Any]:
-        h = super().recording_header()
-        h.update(array=self.array, device_clock=self.receiver.device_clock)
-        return h
