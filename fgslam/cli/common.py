@@ -101,18 +101,62 @@ def add_log_arguments(
     out_help: str,
     *,
     log_help: str = LOG_HELP,
+    config: bool = False,
     tolerant: bool = False,
 ) -> None:
     """The arguments of every command that reads a log, declared once: the positional LOG,
-    the options of the foreign-log readers (:func:`add_reader_arguments`), ``--tolerant``
-    where the command skips malformed records (``tolerant``) and the required ``--out``."""
+    the options of the foreign-log readers (:func:`add_reader_arguments`), ``--config``
+    overriding the log's robot configuration where the command runs SLAM on it (``config``),
+    ``--tolerant`` where it skips malformed records (``tolerant``) and the required
+    ``--out``."""
     p.add_argument("log", help=log_help)
     add_reader_arguments(p)
+    if config:
+        p.add_argument("--config", metavar="ROBOT.toml", help=CONFIG_OVER_LOG_HELP)
     if tolerant:
         p.add_argument(
             "--tolerant", action="store_true", help="skip malformed records instead of stopping"
         )
     p.add_argument("--out", required=True, metavar=out_metavar, help=out_help)
+
+
+def add_robot_config_argument(p: argparse.ArgumentParser) -> None:
+    """``--config``: the robot configuration, where no log brings one."""
+    p.add_argument(
+        "--config", metavar="ROBOT.toml", help="robot configuration overriding the default"
+    )
+
+
+def add_simulation_arguments(p: argparse.ArgumentParser) -> None:
+    """What a simulated run is made of (``simulate``, ``emulate``): the world, the seed, how
+    much of the route, the robot configuration."""
+    p.add_argument("--world", default="corridor", help=WORLD_HELP)
+    p.add_argument("--seed", type=int, default=0, help="random seed of the run (default 0)")
+    p.add_argument(
+        "--duration",
+        type=float,
+        metavar="S",
+        help="stop after S s of the run (default: the whole route)",
+    )
+    add_robot_config_argument(p)
+
+
+def add_speed_argument(p: argparse.ArgumentParser) -> None:
+    """``--speed`` of the emulated devices and of the host reading them (:data:`SPEED_HELP`)."""
+    p.add_argument("--speed", type=float, default=1.0, metavar="K", help=SPEED_HELP)
+
+
+def add_backend_arguments(
+    p: argparse.ArgumentParser, backends: list[str], backend_help: str
+) -> None:
+    """``--backend`` (one of ``backends``, default isam2) and ``--sensors`` of a SLAM run."""
+    p.add_argument("--backend", choices=backends, default="isam2", help=backend_help)
+    p.add_argument(
+        "--sensors",
+        choices=["fused", "laser", "sonar"],
+        default="fused",
+        help="laser and sonar fused (the paper), laser only, or sonar only (default fused)",
+    )
 
 
 def reader_options(args: argparse.Namespace) -> dict:

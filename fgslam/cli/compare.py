@@ -7,7 +7,6 @@ import sys
 from pathlib import Path
 
 from fgslam.cli.common import (
-    CONFIG_OVER_LOG_HELP,
     add_association_argument,
     add_log_arguments,
     config_options,
@@ -26,8 +25,7 @@ def register(sub: argparse._SubParsersAction) -> None:
             "(trajectories and errors over time) into DIR. Any log `run` reads."
         ),
     )
-    add_log_arguments(p, "DIR", "output directory")
-    p.add_argument("--config", metavar="ROBOT.toml", help=CONFIG_OVER_LOG_HELP)
+    add_log_arguments(p, "DIR", "output directory", config=True)
     add_association_argument(p)
     p.set_defaults(func=run)
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from fgslam.cli.common import SPEED_HELP, WORLD_HELP
+from fgslam.cli.common import add_simulation_arguments, add_speed_argument
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -20,19 +20,12 @@ def register(sub: argparse._SubParsersAction) -> None:
             "pulls) can be injected."
         ),
     )
-    p.add_argument("--world", default="corridor", help=WORLD_HELP)
-    p.add_argument("--seed", type=int, default=0, help="random seed of the run (default 0)")
-    p.add_argument("--speed", type=float, default=1.0, metavar="K", help=SPEED_HELP)
-    p.add_argument(
-        "--duration", type=float, metavar="S", help="stop after S s of the run (default: all)"
-    )
+    add_simulation_arguments(p)
+    add_speed_argument(p)
     p.add_argument(
         "--link-dir",
         metavar="DIR",
         help="put the port links (laser, sonar0, sonar1, odometry) here (default: a temp dir)",
-    )
-    p.add_argument(
-        "--config", metavar="ROBOT.toml", help="robot configuration overriding the default"
     )
     p.add_argument(
         "--noise",

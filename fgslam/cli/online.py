@@ -5,7 +5,14 @@ from __future__ import annotations
 import argparse
 import sys
 
-from fgslam.cli.common import SPEED_HELP, add_scanmatch_arguments, config_options, print_summary
+from fgslam.cli.common import (
+    add_backend_arguments,
+    add_robot_config_argument,
+    add_scanmatch_arguments,
+    add_speed_argument,
+    config_options,
+    print_summary,
+)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -36,22 +43,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--odom", metavar="PORT", help="odometry board serial port")
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")
     p.add_argument("--record", metavar="RAW_DIR", help="record every byte received here")
-    p.add_argument(
-        "--backend",
-        choices=["isam2", "ekf"],
-        default="isam2",
-        help="incremental smoothing or the paper's EKF (default isam2)",
+    add_backend_arguments(
+        p, ["isam2", "ekf"], "incremental smoothing or the paper's EKF (default isam2)"
     )
-    p.add_argument(
-        "--sensors",
-        choices=["fused", "laser", "sonar"],
-        default="fused",
-        help="laser and sonar fused, laser only, or sonar only (default fused)",
-    )
-    p.add_argument(
-        "--config", metavar="ROBOT.toml", help="robot configuration overriding the default"
-    )
-    p.add_argument("--speed", type=float, default=1.0, metavar="K", help=SPEED_HELP)
+    add_robot_config_argument(p)
+    add_speed_argument(p)
     p.add_argument(
         "--idle-timeout",
         type=float,

@@ -9,8 +9,8 @@ from collections import Counter
 from pathlib import Path
 
 from fgslam.cli.common import (
-    CONFIG_OVER_LOG_HELP,
     add_association_argument,
+    add_backend_arguments,
     add_log_arguments,
     config_options,
     print_summary,
@@ -31,21 +31,13 @@ def register(sub: argparse._SubParsersAction) -> None:
             "and map.png into --out."
         ),
     )
-    add_log_arguments(p, "DIR", "output directory", tolerant=True)
-    p.add_argument(
-        "--backend",
-        choices=["ekf", "isam2", "batch"],
-        default="isam2",
-        help="the paper's EKF, incremental smoothing, or batch LM smoothing (default isam2)",
-    )
-    p.add_argument(
-        "--sensors",
-        choices=["fused", "laser", "sonar"],
-        default="fused",
-        help="laser and sonar fused (the paper), laser only, or sonar only (default fused)",
+    add_log_arguments(p, "DIR", "output directory", config=True, tolerant=True)
+    add_backend_arguments(
+        p,
+        ["ekf", "isam2", "batch"],
+        "the paper's EKF, incremental smoothing, or batch LM smoothing (default isam2)",
     )
     add_association_argument(p)
-    p.add_argument("--config", metavar="ROBOT.toml", help=CONFIG_OVER_LOG_HELP)
     p.set_defaults(func=run)
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from fgslam.cli.common import WORLD_HELP, progress_bar
+from fgslam.cli.common import add_simulation_arguments, progress_bar
 from fgslam.errors import UserError
 
 
@@ -20,14 +20,7 @@ def register(sub: argparse._SubParsersAction) -> None:
             "given seed."
         ),
     )
-    p.add_argument("--world", default="corridor", help=WORLD_HELP)
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    p.add_argument(
-        "--duration", type=float, help="stop after this many seconds (default: whole route)"
-    )
-    p.add_argument(
-        "--config", metavar="ROBOT.toml", help="robot configuration overriding the default"
-    )
+    add_simulation_arguments(p)
     p.add_argument("--out", required=True, metavar="FILE.log", help="log file to write")
     p.set_defaults(func=run)
 
