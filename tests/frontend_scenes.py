@@ -7,6 +7,7 @@ import dataclasses
 import math
 
 import numpy as np
+from sim_helpers import NO_CLUTTER, NO_LASER_BIAS
 
 from fgslam.config import load_config
 from fgslam.events import LaserScan, OdometryEvent, SonarReading
@@ -16,14 +17,11 @@ from fgslam.sim.world import parse_world
 CFG = load_config()
 QUIET = SimParams(
     laser_sigma=0.005,
-    laser_sys_offset=0.0,
-    laser_sys_per_metre=0.0,
-    mixed_pixel_prob=0.0,
     sonar_bearing_sigma_deg=0.3,
     sonar_range_sigma_rel=0.002,
-    misclass_prob=0.0,
     detect_prob=1.0,
-    phantom_prob=0.0,
+    **NO_LASER_BIAS,
+    **NO_CLUTTER,
 )
 
 

@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 import pytest
+from sim_helpers import EXACT_WHEELS
 
 from factors.odometry import OdometryParams, integrate_poses, propagate, ticks_to_distances
 from fgslam.config import load_config
@@ -76,7 +77,7 @@ def test_odometry_drift_matches_error_model():
     w = parse_world(room, "room")
     odo = CFG.odometry
     params = OdometryParams(odo.wheelbase, odo.k_r, odo.k_l, odo.k_d)
-    exact = SimParams(radius_error_right=0, radius_error_left=0, wheelbase_error=0)
+    exact = SimParams(**EXACT_WHEELS)
 
     def drift(seed, sim):
         run = plan_run(w, CFG, seed=seed, params=sim, duration=25.0)

@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 import pytest
+from sim_helpers import NO_CLUTTER, NO_LASER_BIAS
 
 from fgslam.config import load_config
 from fgslam.sim.raycast import blocked, raycast
@@ -15,14 +16,11 @@ from fgslam.sim.world import WorldError, load_world, parse_world
 
 EXACT = SimParams(
     laser_sigma=0.0,
-    laser_sys_offset=0.0,
-    laser_sys_per_metre=0.0,
-    mixed_pixel_prob=0.0,
     sonar_bearing_sigma_deg=0.0,
     sonar_range_sigma_rel=0.0,
-    misclass_prob=0.0,
     detect_prob=1.0,
-    phantom_prob=0.0,
+    **NO_LASER_BIAS,
+    **NO_CLUTTER,
 )
 CFG = load_config()
 

@@ -9,6 +9,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from sim_helpers import EXACT_WHEELS, NO_CLUTTER, NO_LASER_BIAS
 
 from fgslam.evaluation import metrics as evaluation
 from fgslam.events import LaserScan, OdometryEvent
@@ -68,17 +69,7 @@ def test_consistent_when_the_errors_match_the_models():
     las = dataclasses.replace(cfg.laser, calibration="off")
     cfg = dataclasses.replace(cfg, scanmatch=sm, laser=las)
     w = parse_world(ROOM, "room")
-    p = SimParams(
-        radius_error_right=0,
-        radius_error_left=0,
-        wheelbase_error=0,
-        laser_sys_offset=0,
-        laser_sys_per_metre=0,
-        mixed_pixel_prob=0,
-        misclass_prob=0,
-        phantom_prob=0,
-        sound_speed_bias_sigma=0,
-    )
+    p = SimParams(**EXACT_WHEELS, **NO_LASER_BIAS, **NO_CLUTTER, sound_speed_bias_sigma=0)
     evs = list(events(w, cfg, plan_run(w, cfg, 1, p), p))
     for res in run_backends(evs, cfg, ["ekf", "isam2", "batch"], "fused"):
         n = evaluation.nees(res.poses, np.array(res.covs), _truth(res))

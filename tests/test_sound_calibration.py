@@ -12,6 +12,7 @@ import gtsam
 import numpy as np
 import pytest
 from conftest import factor_analytic_jacobians, factor_numeric_jacobians, numeric_jacobian
+from sim_helpers import EXACT_WHEELS, NO_LASER_BIAS
 
 from factors.point import bearing_range_in_frame, point_factor
 from fgslam.config import ConfigError, from_dict, load_config, with_scanmatch
@@ -228,14 +229,7 @@ def _room_with_sound_bias(bias: float, seed: int = 2):
     """The room driven with every echo's range read r (1 + bias) (exact wheels, no laser
     range bias), and the paper's scheme with only the sound estimated."""
     unit = sound_speed_bias(seed, SimParams(sound_speed_bias_sigma=1.0))
-    p = SimParams(
-        radius_error_right=0.0,
-        radius_error_left=0.0,
-        wheelbase_error=0.0,
-        laser_sys_offset=0.0,
-        laser_sys_per_metre=0.0,
-        sound_speed_bias_sigma=bias / unit,
-    )
+    p = SimParams(**EXACT_WHEELS, **NO_LASER_BIAS, sound_speed_bias_sigma=bias / unit)
     assert sound_speed_bias(seed, p) == pytest.approx(bias)
     cfg = load_config()
     w = parse_world(ROOM, "room")

@@ -11,6 +11,7 @@ import gtsam
 import numpy as np
 import pytest
 from conftest import factor_analytic_jacobians, factor_numeric_jacobians, numeric_jacobian
+from sim_helpers import NO_LASER_BIAS
 
 from factors.geometry import wrap_angle
 from factors.odometry import (
@@ -150,8 +151,7 @@ def biased_room():
         radius_error_right=0.02,
         radius_error_left=-0.015,
         wheelbase_error=0.025,
-        laser_sys_offset=0,
-        laser_sys_per_metre=0,
+        **NO_LASER_BIAS,
         sound_speed_bias_sigma=0,
     )
     evs = list(events(w, cfg, plan_run(w, cfg, 2, p), p))
