@@ -12,7 +12,7 @@ import time
 from pathlib import Path
 
 from fgslam.config import load_config
-from fgslam.io.logfile import LogWriter
+from fgslam.io.logwriter import LogWriter
 from fgslam.sim.simulate import events, plan_run
 from fgslam.sim.world import load_world
 

@@ -430,7 +430,7 @@ def native_log(path: Path) -> None:
     truth and scans, one scan with its own bearings; META present."""
     from fgslam.config import load_config
     from fgslam.events import LaserScan, OdometryEvent, SonarEcho, SonarReading, TruthPose
-    from fgslam.io.logfile import LogWriter
+    from fgslam.io.logwriter import LogWriter
 
     cfg = load_config()
     cfg = dataclasses.replace(cfg, laser=dataclasses.replace(cfg.laser, n_beams=19))
@@ -709,10 +709,8 @@ def config_runner(folder: Path, opts: dict) -> Result:
     import tomli_w
 
     from fgslam import config as c
+    from fgslam.config.robot import KeyframeParams, LoopParams, MapParams
     from fgslam.scanmatch import MatchParams
-    from fgslam.slam.keyframes import KeyframeParams
-    from fgslam.slam.loops import LoopParams
-    from fgslam.slam.mapping import MapParams
 
     cfg = c.load_config(folder / "robot.toml")
     data = cfg.to_dict()
@@ -905,7 +903,7 @@ def device_runner(folder: Path, opts: dict) -> Result:
     from devices.sick import SickReceiver
     from devices.sonar import SonarReceiver
     from fgslam.config import load_config
-    from fgslam.io.logfile import format_record
+    from fgslam.io.logrecords import format_record
     from fgslam.online.ports import to_event
 
     if not _CFG:

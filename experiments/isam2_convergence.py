@@ -20,7 +20,9 @@ import numpy as np
 
 from fgslam.io.readers.victoria import read_victoria
 from fgslam.slam import pointslam
-from fgslam.slam.graph import BatchSmoother, GraphBackend, X
+from fgslam.slam.graph import GraphBackend
+from fgslam.slam.graph_keys import X
+from fgslam.slam.graph_solve import BatchSmoother
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "victoria_park.txt"
 

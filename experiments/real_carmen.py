@@ -27,7 +27,7 @@ import numpy as np
 from fgslam.evaluation import metrics as evaluation
 from fgslam.events import LaserScan
 from fgslam.io.readers.carmen import CarmenLog
-from fgslam.slam.graph import BackendError
+from fgslam.slam.graph_solve import BackendError
 from fgslam.slam.runner import run_backends
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"

@@ -14,10 +14,10 @@ import argparse
 
 import numpy as np
 
+from factors.noise import ROBUST_KERNELS
 from fgslam.evaluation import metrics as evaluation
 from fgslam.sim.scenes import park_run
 from fgslam.slam import pointslam
-from fgslam.slam.models import ROBUST_KERNELS
 
 
 def ate(data, truth, kernel: str, backend: str) -> float:

@@ -40,12 +40,12 @@ from scipy.stats import chi2
 
 from factors.geometry import between_poses, compose_poses
 from fgslam.config import load_config
+from fgslam.config.robot import KeyframeParams
 from fgslam.evaluation import dense
-from fgslam.io.readers.carmen import flaser_scans
+from fgslam.io.readers.carmen_records import flaser_scans
 from fgslam.scanmatch import MatchParams, Reference, match, scan_points
 from fgslam.sim.sensors import SimParams, laser_scan
 from fgslam.sim.world import load_world
-from fgslam.slam.keyframes import KeyframeParams
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
 

@@ -244,7 +244,7 @@ def write_native(path, n: int = 30, stamp=None, t0: float = 0.0) -> None:
 
     from fgslam.config import load_config
     from fgslam.events import LaserScan, OdometryEvent, SonarReading, TruthPose
-    from fgslam.io.logfile import LogWriter
+    from fgslam.io.logwriter import LogWriter
 
     cfg = load_config()
     cfg = dataclasses.replace(cfg, laser=dataclasses.replace(cfg.laser, n_beams=5))

@@ -12,9 +12,10 @@ import numpy as np
 import pytest
 import reference_association as ref
 
+from fgslam.config.robot import AssociationParams
 from fgslam.frontend.features import End, Feature
 from fgslam.slam import association, models
-from fgslam.slam.association import AssociationParams, Candidate
+from fgslam.slam.association import Candidate
 
 
 def _spd(rng: np.random.Generator, n: int, scale: float) -> np.ndarray:

@@ -141,9 +141,8 @@ def test_contradicting_the_log_names_both(tmp_path):
 def test_frontend_thresholds_pls_defaults_exactly_as_before():
     """The paper's PLS (361 beams over 180 deg, sigma 2 cm, 30 m) derives exactly the
     front end's and the map's former constants."""
-    from fgslam.frontend.pipeline import FrontEndParams, frontend_params
-    from fgslam.frontend.segmentation import SegmentParams
-    from fgslam.slam.mapping import MapParams
+    from fgslam.config.robot import FrontEndParams, MapParams, SegmentParams
+    from fgslam.frontend.pipeline import frontend_params
 
     cfg = load_config()
     # the thresholds (the laser's calibration choice is not one of them)

@@ -14,13 +14,16 @@ from fgslam import config as c
 from fgslam.choices import CHOICES
 from fgslam.config import ConfigError, load_config
 from fgslam.config.load import _CHOICES
-from fgslam.frontend.pipeline import FrontEndParams, frontend_params
-from fgslam.frontend.segmentation import SegmentParams
+from fgslam.config.robot import (
+    AssociationParams,
+    FrontEndParams,
+    KeyframeParams,
+    LoopParams,
+    MapParams,
+    SegmentParams,
+)
+from fgslam.frontend.pipeline import frontend_params
 from fgslam.scanmatch import MatchParams
-from fgslam.slam.association import AssociationParams
-from fgslam.slam.keyframes import KeyframeParams
-from fgslam.slam.loops import LoopParams
-from fgslam.slam.mapping import MapParams
 from fgslam.slam.runner import SlamPipeline
 
 # (section path, class, how a component gets it)

@@ -15,12 +15,13 @@ from hypothesis import strategies as st
 
 from factors.geometry import wrap_angle
 from fgslam.config import ConfigError, from_dict
+from fgslam.config.robot import SegmentParams
 from fgslam.events import LaserScan, OdometryEvent, SonarEcho, SonarReading
 from fgslam.frontend.features import End
 from fgslam.frontend.fits import line_ranges
 from fgslam.frontend.fusion import fuse, fused_jacobian
 from fgslam.frontend.pipeline import FrontEnd
-from fgslam.frontend.segmentation import SegmentParams, segment_scan
+from fgslam.frontend.segmentation import segment_scan
 from fgslam.frontend.sonar import (
     PoseHistory,
     SonarBuffer,
@@ -375,7 +376,7 @@ def test_corner_and_its_lines_counted_once_on_request():
     "replace-lines" corners without the walls they were fitted to, and no wall in two
     corners (no point measured twice: of the two corners sharing the east wall the first
     stays, the north wall stays a line); "off" the walls and no corner."""
-    from fgslam.frontend.pipeline import FrontEndParams
+    from fgslam.config.robot import FrontEndParams
 
     _, ranges = scene_events(ROOM, seed=4, sonar=False)
     out = {}
@@ -408,7 +409,7 @@ def test_sonar_points_from_unfused_echoes_only_on_request():
     into a line or corner of the same scan (the issue counted 148 of 180); with
     "unfused-echoes" none does, and the points that remain come from other echoes."""
     from fgslam.config import load_config
-    from fgslam.frontend.pipeline import FrontEndParams
+    from fgslam.config.robot import FrontEndParams
     from fgslam.sim.simulate import events, plan_run
     from fgslam.sim.world import load_world
 
@@ -473,7 +474,7 @@ def test_corner_keeps_the_vertex_returns_between_its_lines():
     import dataclasses
     from collections import Counter
 
-    from fgslam.frontend.pipeline import FrontEndParams
+    from fgslam.config.robot import FrontEndParams
     from fgslam.frontend.segmentation import segment_scan
 
     _, ranges = scene_events(ROOM, seed=4, sonar=False)

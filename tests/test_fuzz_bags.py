@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 from readers_helpers import write_bag
 
 from fgslam.cli import main
-from fgslam.io.readers.common import ReaderError
+from fgslam.errors import ReaderError
 from fgslam.io.readers.ros import bag_messages
 
 pytest.importorskip("rosbags")

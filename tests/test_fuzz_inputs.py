@@ -19,10 +19,8 @@ from hypothesis import strategies as st
 
 from fgslam import config as c
 from fgslam.config import ConfigError, load_config
+from fgslam.config.robot import KeyframeParams, LoopParams, MapParams
 from fgslam.scanmatch import MatchParams
-from fgslam.slam.keyframes import KeyframeParams
-from fgslam.slam.loops import LoopParams
-from fgslam.slam.mapping import MapParams
 
 
 def _derived(cfg: c.RobotConfig) -> None:

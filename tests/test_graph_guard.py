@@ -13,7 +13,9 @@ import pytest
 from factors.odometry import relative_pose
 from fgslam.errors import RunWarning
 from fgslam.frontend.features import Feature
-from fgslam.slam.graph import GraphBackend, GraphSolution, L, X, levenberg_marquardt
+from fgslam.slam.graph import GraphBackend
+from fgslam.slam.graph_keys import L, X
+from fgslam.slam.graph_solve import GraphSolution, levenberg_marquardt
 
 # whitening (square-root information) of two real line measurements of the Intel bag's
 # first corridor: alpha is known to 0.6 mrad, d to 2.6 mm; cov = (R^T R)^-1

@@ -12,11 +12,12 @@ import pytest
 from factors.geometry import between_poses, compose_poses, wrap_angle
 from factors.odometry import relative_pose
 from fgslam.config import load_config
+from fgslam.config.robot import KeyframeParams, LoopParams
 from fgslam.scanmatch import MatchParams
 from fgslam.sim.raycast import raycast
 from fgslam.slam.graph import GraphBackend
-from fgslam.slam.keyframes import KeyframeParams, ScanOdometry
-from fgslam.slam.loops import AWAITING, LoopCloser, LoopParams
+from fgslam.slam.keyframes import ScanOdometry
+from fgslam.slam.loops import AWAITING, LoopCloser
 from fgslam.slam.step import SlamStep
 
 BEARINGS = np.radians(np.linspace(-90.0, 90.0, 181))

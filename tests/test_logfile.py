@@ -19,14 +19,10 @@ from fgslam.config import from_dict, load_config
 from fgslam.errors import UserError
 from fgslam.events import LaserScan, OdometryEvent, SonarEcho, SonarReading, TruthPose
 from fgslam.io import logfile, logrecords
-from fgslam.io.logfile import (
-    LogFormatError,
-    LogReader,
-    LogWriter,
-    format_record,
-    open_text,
-    read_log,
-)
+from fgslam.io.logfile import LogReader, read_log
+from fgslam.io.logrecords import LogFormatError, format_record, open_text
+from fgslam.io.logwriter import LogWriter
+from fgslam.io.readers.source import MAX_PROBLEMS
 
 CFG = load_config()
 N = CFG.laser.n_beams
@@ -406,7 +402,7 @@ def test_tolerant_counts(tmp_path):
         "sonar record": 1,
     }
     messages = reader.problems.messages
-    assert len(messages) == logfile.MAX_PROBLEMS
+    assert len(messages) == MAX_PROBLEMS
     assert messages[0] == f"{path}:5: unknown record tag 'X' (expected O, L, S or T)"
 
 

@@ -13,15 +13,16 @@ import pytest
 
 from factors.odometry import Preintegrated
 from fgslam.config import with_scanmatch
+from fgslam.config.robot import AssociationParams, MapParams
 from fgslam.errors import RunWarning
 from fgslam.evaluation import metrics as evaluation
 from fgslam.frontend.features import Feature
 from fgslam.sim.scenes import PAPER, park_run, room_events
 from fgslam.slam import association, step
-from fgslam.slam.association import AssociationParams, Candidate
+from fgslam.slam.association import Candidate
 from fgslam.slam.ekf import EkfBackend
-from fgslam.slam.graph import BackendError, BatchSmoother, GraphBackend
-from fgslam.slam.mapping import MapParams
+from fgslam.slam.graph import GraphBackend
+from fgslam.slam.graph_solve import BackendError, BatchSmoother
 from fgslam.slam.runner import SlamPipeline
 from fgslam.slam.step import SlamStep
 

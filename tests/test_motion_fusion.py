@@ -109,7 +109,7 @@ def test_graph_relative_covariance_by_monte_carlo(j):
     be.predict(9.0, last)
     r, C = be.relative(j)
     kp = be.k - 1
-    from fgslam.slam.graph import X
+    from fgslam.slam.graph_keys import X
 
     A = be.isam.calculateEstimatePose2(X(j))
     B = be.isam.calculateEstimatePose2(X(kp))

@@ -15,9 +15,10 @@ import pytest
 
 import factors.line
 from factors.geometry import TWO_PI, wrap_angle, wrap_angle_half_open, wrap_angles
+from fgslam.config.robot import AssociationParams
 from fgslam.frontend.features import Feature
 from fgslam.slam import association, models
-from fgslam.slam.association import AssociationParams, Candidate
+from fgslam.slam.association import Candidate
 
 ROOT = Path(__file__).resolve().parents[1]
 SCANNED = ("fgslam", "factors", "devices")

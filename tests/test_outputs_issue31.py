@@ -25,7 +25,7 @@ from fgslam.events import TruthPose
 from fgslam.sim.scenes import room_events
 from fgslam.slam import outputs, runner
 from fgslam.slam.compare import markdown_table, plot_comparison
-from fgslam.slam.graph import BackendError
+from fgslam.slam.graph_solve import BackendError
 from fgslam.slam.outputs import write_outputs
 from fgslam.slam.runner import SlamResult, run_slam
 

@@ -17,10 +17,10 @@ from readers_helpers import carmen_text
 
 from fgslam.cli import main
 from fgslam.config import load_config
+from fgslam.errors import ReaderError
 from fgslam.events import LaserScan, OdometryEvent, SonarReading, TruthPose
 from fgslam.io.formats import open_log
-from fgslam.io.logfile import LogWriter
-from fgslam.io.readers.common import ReaderError
+from fgslam.io.logwriter import LogWriter
 
 N_BEAMS = 5
 MAX_RANGE = 8.0

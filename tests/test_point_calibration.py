@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from fgslam.io.readers.common import relative
+from fgslam.io.readers.odometry import relative
 from fgslam.io.readers.victoria import Sighting, Step, VictoriaPark
 from fgslam.slam.point_calibration import fit_scale, scaled_covariance, sighting_nll
 from fgslam.slam.pointslam import association_agreement, run_points, self_calibrate

@@ -18,7 +18,8 @@ from fgslam.cli import main
 from fgslam.config import load_config
 from fgslam.events import Event, LaserScan, OdometryEvent, SonarReading, TruthPose
 from fgslam.io.formats import open_log
-from fgslam.io.logfile import LogReader, LogWriter
+from fgslam.io.logfile import LogReader
+from fgslam.io.logwriter import LogWriter
 from fgslam.io.readers.carmen import CarmenLog
 from fgslam.io.readers.plausibility import ImplausibleInput
 from fgslam.io.readers.source import LogSource, Problems

@@ -14,10 +14,13 @@ from hypothesis import strategies as st
 from readers_helpers import DATA, carmen_text, path, rel, write_bag
 
 from factors.odometry import integrate_poses
+from fgslam.errors import ReaderError
 from fgslam.events import LaserScan, OdometryEvent, SonarReading, TruthPose
 from fgslam.io.formats import open_log, sniff_format
-from fgslam.io.readers.carmen import CarmenLog, odometry_check
-from fgslam.io.readers.common import ReaderError, VirtualDrive, derived_config, relative
+from fgslam.io.readers.carmen import CarmenLog
+from fgslam.io.readers.carmen_records import odometry_check
+from fgslam.io.readers.common import derived_config
+from fgslam.io.readers.odometry import VirtualDrive, relative
 from fgslam.io.readers.victoria import read_victoria, to_bearing_range
 
 INTEL = DATA / "intel-corrected.log.gz"
@@ -135,7 +138,7 @@ def test_carmen_corrected_log(tmp_path):
 def test_flaser_scans_reads_the_raw_scans(tmp_path):
     """The scans of a log as arrays (for experiments): every FLASER in order, its stamp and
     both pose fields; no-return (80 m and beyond) is NaN; ``limit`` stops early."""
-    from fgslam.io.readers.carmen import flaser_scans
+    from fgslam.io.readers.carmen_records import flaser_scans
 
     f = tmp_path / "room.log"
     f.write_text(carmen_text(corrected=True))

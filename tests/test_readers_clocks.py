@@ -16,7 +16,8 @@ from readers_helpers import write_native
 from fgslam.cli import main
 from fgslam.events import LaserScan, OdometryEvent, SonarReading, TruthPose
 from fgslam.io.formats import open_log
-from fgslam.io.logfile import LogFormatError, LogReader
+from fgslam.io.logfile import LogReader
+from fgslam.io.logrecords import LogFormatError
 from fgslam.io.readers.sanity import INDEX_PERIOD, common_clock
 
 UNIX = 1.7e9  # a UNIX-time clock (an online recording, a converted CARMEN log)

@@ -16,10 +16,11 @@ from readers_helpers import bag_drive, carmen_text, write_bag, write_native
 from factors.odometry import COVARIANCE_FLOOR, OdometryIntegrator, integrate_poses, preintegrate
 from fgslam.cli import build_parser, main
 from fgslam.config import load_config
+from fgslam.errors import ReaderError
 from fgslam.events import LaserScan, OdometryEvent
 from fgslam.io.formats import open_log
-from fgslam.io.logfile import LogFormatError
-from fgslam.io.readers.common import ReaderError, derived_config
+from fgslam.io.logrecords import LogFormatError
+from fgslam.io.readers.common import derived_config
 from fgslam.io.readers.sanity import INDEX_PERIOD, OdometryLimits, implausible
 
 

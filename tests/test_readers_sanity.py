@@ -12,10 +12,11 @@ from hypothesis import strategies as st
 from readers_helpers import carmen_text, odometry_at
 
 from fgslam.cli import main
+from fgslam.errors import ReaderError
 from fgslam.events import LaserScan, OdometryEvent, TruthPose
 from fgslam.io.formats import open_log
 from fgslam.io.readers.carmen import CarmenLog
-from fgslam.io.readers.common import MAX_SAMPLES, ReaderError
+from fgslam.io.readers.odometry import MAX_SAMPLES
 from fgslam.io.readers.sanity import INDEX_PERIOD, OdometryLimits, implausible, index_stamps
 from fgslam.sim.scenes import PAPER
 

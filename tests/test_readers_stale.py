@@ -12,7 +12,8 @@ from readers_helpers import bag_drive, fmt, odometry_at, write_bag
 
 from fgslam.events import LaserScan, OdometryEvent, SonarReading, TruthPose
 from fgslam.io.formats import open_log
-from fgslam.io.readers.common import StaleOdometryHold, VirtualDrive, derived_config
+from fgslam.io.readers.common import derived_config
+from fgslam.io.readers.odometry import StaleOdometryHold, VirtualDrive
 from fgslam.io.readers.sanity import OdometryLimits
 
 CFG = derived_config(5)

@@ -334,7 +334,9 @@ def test_native_log_round_trip_keeps_per_scan_bearings(tmp_path):
     import dataclasses
 
     from fgslam.config import load_config
-    from fgslam.io.logfile import LogFormatError, LogWriter, read_log
+    from fgslam.io.logfile import read_log
+    from fgslam.io.logrecords import LogFormatError
+    from fgslam.io.logwriter import LogWriter
 
     cfg = load_config()
     cfg = dataclasses.replace(cfg, laser=dataclasses.replace(cfg.laser, n_beams=5))

@@ -438,7 +438,7 @@ def test_model_error_floor_on_real_relations():
     (median NEES far above 3 dof's 2.37); with the floor ``for_laser`` derives from the
     sensor (half a grid cell, one beam) it is consistent."""
     from fgslam.evaluation.dense import read_relations, relation_scan_pairs
-    from fgslam.io.readers.carmen import flaser_scans
+    from fgslam.io.readers.carmen_records import flaser_scans
 
     scans = flaser_scans(MIT, 700)
     ranges, stamps = scans["ranges"], scans["t"]
@@ -471,7 +471,7 @@ def test_scan_odometry_thresholds_keep_right_low_score_pairs():
     """Intel's consecutive scans are ~1 m apart in clutter: right matches often score below
     the matcher's 0.5. At the scan odometry's thresholds (KeyframeParams) nearly all pairs
     are accepted and the accepted ones stay right."""
-    from fgslam.slam.keyframes import KeyframeParams
+    from fgslam.config.robot import KeyframeParams
 
     ranges, poses, odo = read_corrected(INTEL, 151)
     n = len(ranges[0])

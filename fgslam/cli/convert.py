@@ -34,7 +34,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
 
     from fgslam.io.formats import open_log
-    from fgslam.io.logfile import LogWriter
+    from fgslam.io.logwriter import LogWriter
 
     reader = open_log(args.log, **reader_options(args))
     counts: Counter = Counter()

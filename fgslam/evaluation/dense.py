@@ -22,7 +22,7 @@ from numpy.typing import ArrayLike, NDArray
 from factors.geometry import between_poses, compose_poses, wrap_angles
 from factors.odometry import integrate_poses
 from fgslam.evaluation.metrics import numeric_rows
-from fgslam.io.readers.common import OdometryChain
+from fgslam.io.readers.odometry import OdometryChain
 
 
 def odometry_path(samples: ArrayLike, wheelbase: float) -> tuple[NDArray, NDArray]:

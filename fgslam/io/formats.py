@@ -16,9 +16,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from fgslam.io.readers.common import ReaderError, StrPath, head_text
+from fgslam.errors import ReaderError
+from fgslam.io.readers.common import head_text
 from fgslam.io.readers.sanity import BACKWARDS_TOLERANCE, INDEX_PERIOD, NoUsableClock
-from fgslam.io.readers.source import LogSource
+from fgslam.io.readers.source import LogSource, StrPath
 
 FORMATS = ("fgslam", "carmen", "ros", "victoria")
 
@@ -109,7 +110,8 @@ def _open_native(path: StrPath, options: dict[str, Any]) -> LogSource:
     through the plausibility rules; without a usable clock (``timestamps`` auto) it is read
     in record order (``index``) unless ``strict``, the reason in ``clock_record["fallback"]``
     and ``["clock"]``."""
-    from fgslam.io.logfile import LogFormatError, LogReader
+    from fgslam.io.logfile import LogReader
+    from fgslam.io.logrecords import LogFormatError
 
     timestamps = options.get("timestamps") or "auto"
     kw = {

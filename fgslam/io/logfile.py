@@ -29,12 +29,10 @@ from fgslam.events import Event, OdometryEvent
 from fgslam.io.logrecords import (
     _PARSERS,
     _STREAMS,
-    BEARINGS_TAG,
     CLOCKS,
     FORMAT_NAME,
     FORMAT_VERSION,
     HEADER_TAGS,
-    MAX_ABS_STAMP,
     MAX_LINE_BYTES,
     READ_VERSIONS,
     UNIX_CLOCK,
@@ -47,10 +45,7 @@ from fgslam.io.logrecords import (
     _stamp,
     _strict_loads,
     _strip_eol,
-    format_record,
-    open_text,
 )
-from fgslam.io.logwriter import LogWriter
 from fgslam.io.readers.plausibility import Findings, Rules, check_events
 from fgslam.io.readers.sanity import (
     BACKWARDS_TOLERANCE,
@@ -58,22 +53,7 @@ from fgslam.io.readers.sanity import (
     index_stamps,
     stream_defects,
 )
-from fgslam.io.readers.source import MAX_PROBLEMS, Problems
-
-__all__ = [  # the names callers and tests import from here
-    "BEARINGS_TAG",
-    "FORMAT_NAME",
-    "FORMAT_VERSION",
-    "MAX_ABS_STAMP",
-    "MAX_PROBLEMS",
-    "LogFormatError",
-    "LogHeader",
-    "LogReader",
-    "LogWriter",
-    "format_record",
-    "open_text",
-    "read_log",
-]
+from fgslam.io.readers.source import Problems
 
 
 class LogReader:
@@ -84,7 +64,8 @@ class LogReader:
     ``problems`` (a :class:`~fgslam.io.readers.source.Problems`, the foreign readers' type).
     Strict mode raises :class:`LogFormatError` at the first bad line. With ``tolerant=True``
     bad records are skipped and counted in ``skipped`` and ``skipped_by_reason``, the first
-    ``MAX_PROBLEMS`` messages kept in ``problems.messages``; header and gzip errors are always
+    :data:`fgslam.io.readers.source.MAX_PROBLEMS` messages kept in ``problems.messages``; header
+    and gzip errors are always
     fatal. Records stamped earlier than the record of the same type before them are passed on
     as they are (the SLAM pipeline puts them back in order or drops them) and counted in
     ``backwards`` (by record type: odometry, laser, sonar, truth).

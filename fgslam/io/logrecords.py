@@ -35,7 +35,6 @@ READ_VERSIONS = (1, 2)  # read
 BEARINGS_TAG = "B"  # in a laser record: the scan's own bearings follow
 GZIP_MAGIC = b"\x1f\x8b"
 MAX_LINE_BYTES = 1 << 23  # longer lines are bad records (bounds memory on corrupt input)
-MAX_PROBLEMS = 20  # messages kept in LogReader.problems in tolerant mode
 # Stamps beyond this (s) are not times (1e10 s is the year 2286 as Unix time); such a record
 # would make every later one look late and be dropped.
 MAX_ABS_STAMP = 1e10

@@ -46,7 +46,7 @@ from devices.sonar import SonarArray, SonarFrame
 from fgslam.config import RobotConfig, from_dict, load_config
 from fgslam.errors import UserError
 from fgslam.events import Event, LaserScan, OdometryEvent, SonarEcho, SonarReading, TruthPose
-from fgslam.io.logfile import LogWriter
+from fgslam.io.logwriter import LogWriter
 from fgslam.io.ordering import merge_sources
 from fgslam.sim.sensors import SimParams
 from fgslam.sim.simulate import Run, events, plan_run

@@ -75,9 +75,10 @@ Pipeline of :func:`match` (docs/design.md, 5b):
    then: an odometry-like caller may use a corridor match with its honest covariance by
    raising ``max_ambiguity``.
 
-Modules: :mod:`~fgslam.scanmatch.params` (:class:`MatchParams`), :mod:`~fgslam.scanmatch.points`
-(:func:`scan_points`, point filters, the angle wrap), :mod:`~fgslam.scanmatch.reference`
-(:class:`Reference`: grid, lines, fans), :mod:`~fgslam.scanmatch.search` (1.),
+Modules (:class:`MatchParams` is the configuration's ``[matcher]`` section, in
+:mod:`fgslam.config`): :mod:`~fgslam.scanmatch.points` (:func:`scan_points`, point filters),
+:mod:`~fgslam.scanmatch.reference` (:class:`Reference`: grid, lines, fans),
+:mod:`~fgslam.scanmatch.search` (1.),
 :mod:`~fgslam.scanmatch.icp` (2.), :mod:`~fgslam.scanmatch.basins` (2., the other basins),
 :mod:`~fgslam.scanmatch.covariance` (3.), :mod:`~fgslam.scanmatch.matcher` (:func:`match`,
 :class:`Match`, 4.).
@@ -85,8 +86,8 @@ Modules: :mod:`~fgslam.scanmatch.params` (:class:`MatchParams`), :mod:`~fgslam.s
 numpy/scipy only, no I/O.
 """
 
+from fgslam.config.robot import MatchParams
 from fgslam.scanmatch.matcher import Match, match
-from fgslam.scanmatch.params import MatchParams
 from fgslam.scanmatch.points import scan_points
 from fgslam.scanmatch.reference import Reference
 

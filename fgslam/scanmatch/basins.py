@@ -10,8 +10,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from factors.geometry import rot, wrap_angle, wrap_angles
+from fgslam.config.robot import MatchParams
 from fgslam.scanmatch.icp import _correspond, _Icp, _icp
-from fgslam.scanmatch.params import MatchParams
 from fgslam.scanmatch.reference import Reference
 from fgslam.scanmatch.search import _Response
 

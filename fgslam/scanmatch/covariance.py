@@ -11,8 +11,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from factors.geometry import rot, wrap_angle, wrap_angle_half_open
+from fgslam.config.robot import MatchParams
 from fgslam.scanmatch.icp import _Icp
-from fgslam.scanmatch.params import MatchParams
 from fgslam.scanmatch.search import _Response
 
 

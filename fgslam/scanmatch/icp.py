@@ -10,7 +10,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from factors.geometry import rot, wrap_angle, wrap_angles
-from fgslam.scanmatch.params import MatchParams
+from fgslam.config.robot import MatchParams
 from fgslam.scanmatch.reference import Reference
 
 

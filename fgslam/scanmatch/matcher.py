@@ -10,10 +10,10 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from factors.geometry import wrap_angle
+from fgslam.config.robot import MatchParams
 from fgslam.scanmatch.basins import _other_basins, _seeds
 from fgslam.scanmatch.covariance import _covariance
 from fgslam.scanmatch.icp import _icp
-from fgslam.scanmatch.params import MatchParams
 from fgslam.scanmatch.points import _clean, _voxel
 from fgslam.scanmatch.reference import Reference
 from fgslam.scanmatch.search import _search

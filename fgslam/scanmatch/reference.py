@@ -11,7 +11,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
 from factors.geometry import wrap_angle_half_open
-from fgslam.scanmatch.params import MatchParams
+from fgslam.config.robot import MatchParams
 from fgslam.scanmatch.points import _clean
 
 

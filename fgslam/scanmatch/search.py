@@ -11,7 +11,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from factors.geometry import rot
-from fgslam.scanmatch.params import MatchParams
+from fgslam.config.robot import MatchParams
 from fgslam.scanmatch.reference import Reference
 
 

@@ -7,7 +7,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from fgslam.config import RobotConfig
-from fgslam.io.logfile import LogWriter
+from fgslam.io.logwriter import LogWriter
 from fgslam.sim.sensors import SimParams
 from fgslam.sim.simulate import Run, events, plan_run, sound_speed_bias
 from fgslam.sim.world import World

@@ -45,28 +45,13 @@ from fgslam.slam.calibration import Calibration, as_calibration
 from fgslam.slam.graph_guard import GraphGuard, prior_factor, weak_noise
 from fgslam.slam.graph_keys import C, L, X, blockdiag
 from fgslam.slam.graph_solve import (
-    BackendError,
-    BatchSmoother,
     GraphSolution,
     chi2_per_dof,
     isam2_params,
-    levenberg_marquardt,
     solve_linear,
 )
 
 # the graph's names as callers import them (fgslam.slam.graph is the backends' one door)
-__all__ = [
-    "BackendError",
-    "BatchSmoother",
-    "C",
-    "GraphBackend",
-    "GraphSolution",
-    "L",
-    "X",
-    "chi2_per_dof",
-    "levenberg_marquardt",
-    "solve_linear",
-]
 
 
 class GraphBackend(GraphGuard, Backend):

@@ -7,8 +7,3 @@ marks), :mod:`fgslam.slam.geometry` (segment ends and corner arms in world coord
 """
 
 from __future__ import annotations
-
-from fgslam.config import MapParams
-from fgslam.slam.lifecycle import Landmark
-
-__all__ = ["Landmark", "MapParams"]  # MapParams: the configuration's [map] section

@@ -31,12 +31,13 @@ from numpy.typing import NDArray
 
 from factors.geometry import compose_poses
 from factors.odometry import Preintegrated
+from fgslam.config.robot import MapParams
 from fgslam.frontend.features import Feature
 from fgslam.io.readers.victoria import VictoriaPark, to_bearing_range
 from fgslam.slam.backend import Backend
 from fgslam.slam.ekf import EkfBackend
-from fgslam.slam.graph import BatchSmoother, GraphBackend
-from fgslam.slam.mapping import MapParams
+from fgslam.slam.graph import GraphBackend
+from fgslam.slam.graph_solve import BatchSmoother
 from fgslam.slam.point_calibration import (
     Scales,
     association_of,

@@ -30,6 +30,7 @@ from numpy.typing import NDArray
 from factors.geometry import compose_poses
 from factors.odometry import integrate_poses, preintegrate
 from fgslam.config import RobotConfig
+from fgslam.config.robot import KeyframeParams, LoopParams, MapParams
 from fgslam.events import Event, OdometryEvent, TruthPose
 from fgslam.frontend.pipeline import FrontEnd
 from fgslam.io.ordering import REORDER_WINDOW, ReorderBuffer
@@ -39,11 +40,11 @@ from fgslam.slam.association import METHODS
 from fgslam.slam.backend import Backend
 from fgslam.slam.calibration import Calibration
 from fgslam.slam.ekf import EkfBackend
-from fgslam.slam.graph import BackendError, BatchSmoother, GraphBackend
-from fgslam.slam.keyframes import KeyframeParams, ScanOdometry
+from fgslam.slam.graph import GraphBackend
+from fgslam.slam.graph_solve import BackendError, BatchSmoother
+from fgslam.slam.keyframes import ScanOdometry
 from fgslam.slam.lifecycle import Landmark
-from fgslam.slam.loops import LoopCloser, LoopParams
-from fgslam.slam.mapping import MapParams
+from fgslam.slam.loops import LoopCloser
 from fgslam.slam.step import SlamStep
 
 BACKENDS = ("ekf", "isam2", "batch")

@@ -22,13 +22,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from factors.odometry import Preintegrated, relative_pose
+from fgslam.config.robot import MapParams
 from fgslam.frontend.features import Feature
 from fgslam.slam import geometry
 from fgslam.slam.association import associate
 from fgslam.slam.backend import Backend
 from fgslam.slam.lifecycle import CONFIRMED, Lifecycle
 from fgslam.slam.loops import LoopCloser
-from fgslam.slam.mapping import MapParams
 
 
 class SlamStep:

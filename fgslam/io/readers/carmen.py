@@ -63,27 +63,21 @@ from collections.abc import Iterator
 
 import numpy as np
 
+from fgslam.errors import ReaderError
 from fgslam.events import Event, LaserScan, TruthPose, own_bearings
 from fgslam.io.readers.carmen_records import (
     LASER_TAGS,
     USED_TAGS,
     _Bad,
-    flaser_scans,
-    odometry_check,
     parse_record,
 )
-from fgslam.io.readers.common import (
+from fgslam.io.readers.common import derived_config, input_warnings, open_lines
+from fgslam.io.readers.odometry import (
     OdometryChain,
     OdometryJumps,
-    ReaderError,
-    Source,
     StaleOdometryHold,
-    StrPath,
     VirtualDrive,
     compose,
-    derived_config,
-    input_warnings,
-    open_lines,
     relative,
 )
 from fgslam.io.readers.sanity import (
@@ -94,14 +88,7 @@ from fgslam.io.readers.sanity import (
     index_stamps,
     stamp_defects,
 )
-
-__all__ = [  # parse_record, odometry_check and flaser_scans live in carmen_records
-    "CarmenLog",
-    "flaser_scans",
-    "odometry_chain",
-    "odometry_check",
-    "parse_record",
-]
+from fgslam.io.readers.source import Source, StrPath
 
 MODES = ("auto", "corrected", "raw")
 NO_RETURN = 80.0
@@ -514,7 +501,7 @@ class CarmenLog(Source):
 
 def odometry_chain(path: StrPath, mode: str = "auto") -> OdometryChain:
     """The log's odometry record by record in file order, for the relations benchmark
-    (:class:`fgslam.io.readers.common.OdometryChain`): every scan and ``ODOM`` line with its
+    (:class:`fgslam.io.readers.odometry.OdometryChain`): every scan and ``ODOM`` line with its
     own stamp and
     the cumulative raw odometry at it (corrected logs: each ``ODOM`` line's increment over
     the line before it within its scan interval, the lines restarting from the scan's

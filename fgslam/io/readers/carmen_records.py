@@ -11,9 +11,10 @@ import math
 
 import numpy as np
 
-from fgslam.io.readers.common import StrPath, open_lines
+from fgslam.io.readers.common import open_lines
 from fgslam.io.readers.odometry import relative
 from fgslam.io.readers.sanity import MAX_STAMP
+from fgslam.io.readers.source import StrPath
 
 MAX_COORD = 1e7  # m (and rad): a pose field beyond is not a pose
 LASER_TAGS = ("FLASER", "ROBOTLASER1")

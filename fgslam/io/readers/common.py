@@ -24,60 +24,17 @@ from fgslam.config import SICK_LMS_SIGMA_RANGE, Mount, RobotConfig, load_config
 from fgslam.errors import ReaderError
 from fgslam.frontend.fits import RESIDUAL_TEST
 from fgslam.io.readers.odometry import (
-    MAX_SAMPLES,
     VIRTUAL_ENCODER_STEPS,
     VIRTUAL_K,
     VIRTUAL_K_D,
     VIRTUAL_METRES_PER_TICK,
-    VIRTUAL_STEP,
-    VIRTUAL_TURN,
     VIRTUAL_WHEELBASE,
-    Increment,
-    OdometryChain,
-    OdometryJumps,
-    StaleOdometryHold,
-    VirtualDrive,
-    compose,
-    relative,
 )
 from fgslam.io.readers.sanity import OdometryLimits
 from fgslam.io.readers.source import (
-    MAX_PROBLEMS,
-    LogSource,
-    Problems,
-    Source,
     StrPath,
     clock_warnings,
 )
-
-__all__ = [  # the names readers, tests and docs import from here
-    "MAX_PROBLEMS",
-    "MAX_SAMPLES",
-    "VIRTUAL_ENCODER_STEPS",
-    "VIRTUAL_K",
-    "VIRTUAL_K_D",
-    "VIRTUAL_METRES_PER_TICK",
-    "VIRTUAL_STEP",
-    "VIRTUAL_TURN",
-    "VIRTUAL_WHEELBASE",
-    "Increment",
-    "LogSource",
-    "OdometryChain",
-    "OdometryJumps",
-    "Problems",
-    "ReaderError",
-    "Source",
-    "StaleOdometryHold",
-    "StrPath",
-    "VirtualDrive",
-    "clock_warnings",
-    "compose",
-    "derived_config",
-    "head_text",
-    "input_warnings",
-    "open_lines",
-    "relative",
-]
 
 RESIDUAL_LEVEL = RESIDUAL_TEST  # real logs: fit covariances scaled by their residual
 

@@ -51,6 +51,7 @@ from typing import Any
 import numpy as np
 
 from fgslam.config import Mount
+from fgslam.errors import ReaderError
 from fgslam.events import (
     BEARING_TOLERANCE,
     Event,
@@ -59,17 +60,8 @@ from fgslam.events import (
     SonarReading,
     own_bearings,
 )
-from fgslam.io.readers.common import (
-    OdometryJumps,
-    ReaderError,
-    Source,
-    StaleOdometryHold,
-    StrPath,
-    VirtualDrive,
-    compose,
-    derived_config,
-    input_warnings,
-)
+from fgslam.io.readers.common import derived_config, input_warnings
+from fgslam.io.readers.odometry import OdometryJumps, StaleOdometryHold, VirtualDrive, compose
 from fgslam.io.readers.sanity import (
     BACKWARDS_TOLERANCE,
     MAX_STAMP,
@@ -79,6 +71,7 @@ from fgslam.io.readers.sanity import (
     common_clock,
     stream_defects,
 )
+from fgslam.io.readers.source import Source, StrPath
 
 ROS_CLOCKS = ("auto", "header", "bag")
 SCAN = "sensor_msgs/msg/LaserScan"

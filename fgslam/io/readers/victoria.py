@@ -24,7 +24,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from fgslam.io.readers.common import Problems, ReaderError, StrPath, open_lines
+from fgslam.errors import ReaderError
+from fgslam.io.readers.common import open_lines
+from fgslam.io.readers.source import Problems, StrPath
 
 
 @dataclass(frozen=True)
