@@ -49,6 +49,7 @@ from fgslam.config import load_config, with_options
 from fgslam.evaluation import metrics as evaluation
 from fgslam.io.logfile import LogReader
 from fgslam.sim import simulate_to_log
+from fgslam.sim.scenes import PAPER
 from fgslam.sim.sensors import SimParams
 from fgslam.sim.simulate import calibration_truth
 from fgslam.sim.world import load_world
@@ -58,7 +59,7 @@ from fgslam.slam.runner import BACKENDS, SENSORS, run_backends
 HERE = Path(__file__).resolve().parent
 KEPT_TRACK = 0.5  # m of maximum position error
 MODES = {
-    "paper": {"odometry": "wheels", "keyframes": "every-scan", "loop_closures": "off"},
+    "paper": PAPER,
     "scan": {},  # the configuration's [scanmatch] defaults
 }
 

@@ -29,6 +29,7 @@ from fgslam.evaluation import dense
 from fgslam.evaluation import metrics as evaluation
 from fgslam.io.formats import open_log
 from fgslam.io.readers.carmen import odometry_chain
+from fgslam.sim.scenes import PAPER
 from fgslam.slam.outputs import ScanSample, laser_points
 from fgslam.slam.runner import run_backends
 
@@ -59,7 +60,7 @@ def fmt(m: dict) -> str:
 
 
 MODES = {  # the paper's pipeline (wheel odometry, every scan) and scan matching (issue 14)
-    "wheels": {"odometry": "wheels", "keyframes": "every-scan", "loop_closures": "off"},
+    "wheels": PAPER,
     "scan": {"odometry": "both", "keyframes": "motion", "loop_closures": "on"},
     "scan-noloops": {"odometry": "both", "keyframes": "motion", "loop_closures": "off"},
 }
