@@ -27,10 +27,11 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from fgslam.config import load_config
-from fgslam.events import LaserScan, OdometryEvent, SonarReading
+from fgslam.events import LaserScan
 from fgslam.frontend import pipeline
 from fgslam.frontend.features import End
-from fgslam.sim.sensors import SimParams, laser_scan, sonar_echoes
+from fgslam.sim.scenes import QUIET, standing_scene
+from fgslam.sim.sensors import SimParams
 from fgslam.sim.world import parse_world
 
 # the scene of tests/test_frontend.py::FIG4
@@ -39,17 +40,6 @@ FIG4 = {
     "doors": [{"wall": "w", "at": 5.3, "width": 0.9, "recess": 0.04, "side": "left"}],
     "legs": [{"x": -1.2, "y": 2.0, "radius": 0.03}],
 }
-QUIET = SimParams(  # tests/frontend_scenes.py QUIET
-    laser_sigma=0.005,
-    laser_sys_offset=0.0,
-    laser_sys_per_metre=0.0,
-    mixed_pixel_prob=0.0,
-    sonar_bearing_sigma_deg=0.3,
-    sonar_range_sigma_rel=0.002,
-    misclass_prob=0.0,
-    detect_prob=1.0,
-    phantom_prob=0.0,
-)
 POSE = (0.0, 0.0, math.pi / 2)  # the robot faces the wall
 T_SCAN = 6.5
 END_CODE = {
@@ -68,28 +58,10 @@ SONAR_STYLE = {
 
 
 def scene_events(cfg, params, seed):
-    """A robot standing at POSE for 13 s: odometry without motion, both sonar arrays sweeping,
-    and one laser scan at T_SCAN (as tests/frontend_scenes.py::scene_events)."""
-    world = parse_world({"name": "fig4", **FIG4}, "<fig4>")
-    rng = np.random.default_rng(seed)
-    evs = [OdometryEvent(round(0.01 * k, 2), 0, 0) for k in range(1, 1301)]
-    m = cfg.laser.mount
-    x, y, th = POSE
-    c, s = math.cos(th), math.sin(th)
-    lp = (x + c * m.x - s * m.y, y + s * m.x + c * m.y, th + math.radians(m.yaw_deg))
-    evs.append(LaserScan(T_SCAN, laser_scan(world, cfg.laser, params, lp, T_SCAN, rng)))
-    for i, arr in enumerate(cfg.sonar.arrays):
-        lo, hi = math.radians(arr.pan_min_deg), math.radians(arr.pan_max_deg)
-        for k in range(int(13 * cfg.sonar.cycle_rate)):
-            t = 0.005 + 0.013 * i + k / cfg.sonar.cycle_rate
-            ph = (t / arr.sweep_period + 0.5 * i) % 1.0
-            pan = lo + (hi - lo) * (2 * ph if ph < 0.5 else 2 - 2 * ph)
-            a = th + math.radians(arr.mount.yaw_deg) + pan
-            sp = (x + c * arr.mount.x - s * arr.mount.y, y + s * arr.mount.x + c * arr.mount.y, a)
-            echoes = sonar_echoes(world, cfg.sonar, params, sp, t, rng, 0.0)
-            evs.append(SonarReading(t, i, pan, echoes))
-    evs.sort(key=lambda e: e.t)
-    return evs, world
+    """A robot standing at POSE for 13 s in FIG4 (:func:`fgslam.sim.scenes.standing_scene`):
+    odometry without motion, both sonar arrays sweeping, one laser scan at T_SCAN."""
+    evs, _ = standing_scene(FIG4, POSE, seed, params, cfg, T_SCAN)
+    return evs, parse_world({"name": "fig4", **FIG4}, "<fig4>")
 
 
 def run(cfg, evs, mode):

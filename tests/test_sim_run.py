@@ -7,11 +7,11 @@ import math
 
 import numpy as np
 import pytest
-from sim_helpers import EXACT_WHEELS
 
 from factors.odometry import OdometryParams, integrate_poses, propagate, ticks_to_distances
 from fgslam.config import load_config
 from fgslam.events import LaserScan, OdometryEvent, SonarReading, TruthPose
+from fgslam.sim.scenes import EXACT_WHEELS
 from fgslam.sim.sensors import SimParams
 from fgslam.sim.simulate import events, plan_run
 from fgslam.sim.world import load_world, parse_world

@@ -7,10 +7,10 @@ import math
 
 import numpy as np
 import pytest
-from sim_helpers import NO_CLUTTER, NO_LASER_BIAS
 
 from fgslam.config import load_config
 from fgslam.sim.raycast import blocked, raycast
+from fgslam.sim.scenes import NO_CLUTTER, NO_LASER_BIAS
 from fgslam.sim.sensors import SimParams, laser_scan, sonar_echoes
 from fgslam.sim.world import WorldError, load_world, parse_world
 

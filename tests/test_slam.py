@@ -9,13 +9,12 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from sim_helpers import EXACT_WHEELS, NO_CLUTTER, NO_LASER_BIAS
 
 from fgslam.config.robot import MapParams
 from fgslam.evaluation import metrics as evaluation
 from fgslam.events import LaserScan, OdometryEvent
 from fgslam.frontend.features import End, Feature
-from fgslam.sim.scenes import room_events
+from fgslam.sim.scenes import EXACT_WHEELS, NO_CLUTTER, NO_LASER_BIAS, room_events
 from fgslam.slam import models
 from fgslam.slam.ekf import EkfBackend
 from fgslam.slam.outputs import write_outputs

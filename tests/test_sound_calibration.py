@@ -12,7 +12,6 @@ import gtsam
 import numpy as np
 import pytest
 from conftest import factor_analytic_jacobians, factor_numeric_jacobians, numeric_jacobian
-from sim_helpers import EXACT_WHEELS, NO_LASER_BIAS
 
 from factors.point import bearing_range_in_frame, point_factor
 from fgslam.config import ConfigError, from_dict, load_config, with_scanmatch
@@ -20,7 +19,7 @@ from fgslam.evaluation import metrics as evaluation
 from fgslam.frontend.features import OwnTime
 from fgslam.frontend.fusion import fuse, fused_jacobian
 from fgslam.frontend.pipeline import _echo_range_jacobian, _plane
-from fgslam.sim.scenes import PAPER, ROOM
+from fgslam.sim.scenes import EXACT_WHEELS, NO_LASER_BIAS, PAPER, ROOM
 from fgslam.sim.sensors import SimParams
 from fgslam.sim.simulate import events, plan_run, sound_speed_bias
 from fgslam.sim.world import parse_world

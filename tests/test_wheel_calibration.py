@@ -11,7 +11,6 @@ import gtsam
 import numpy as np
 import pytest
 from conftest import factor_analytic_jacobians, factor_numeric_jacobians, numeric_jacobian
-from sim_helpers import NO_LASER_BIAS
 
 from factors.geometry import wrap_angle
 from factors.odometry import (
@@ -24,7 +23,7 @@ from factors.odometry import (
 )
 from fgslam.config import load_config, with_scanmatch
 from fgslam.evaluation import metrics as evaluation
-from fgslam.sim.scenes import PAPER, ROOM
+from fgslam.sim.scenes import NO_LASER_BIAS, PAPER, ROOM
 from fgslam.sim.sensors import SimParams
 from fgslam.sim.simulate import events, plan_run
 from fgslam.sim.world import parse_world

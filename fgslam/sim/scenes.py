@@ -4,6 +4,9 @@
   driven around for ~40 s (all events in memory).
 - :data:`PAPER`: the paper's scheme as a ``[scanmatch]`` section (wheel odometry, every scan a
   keyframe, no loop closures), for :func:`fgslam.config.with_scanmatch`.
+- :func:`standing_scene`: a robot standing still in a small world for 13 s, its sonar sweeping
+  around one laser scan; :data:`QUIET` the quiet sensors and :data:`EXACT_WHEELS`,
+  :data:`NO_LASER_BIAS`, :data:`NO_CLUTTER` the simulator's true errors switched off by group.
 - :func:`synthetic_park` and :func:`park_run`: point-landmark data in the Victoria Park format
   (two laps among 12 trees), exact or noisy, optionally with wrong associations.
 """
@@ -16,15 +19,78 @@ import math
 import numpy as np
 
 from factors.geometry import wrap_angle
-from fgslam.config import load_config
+from fgslam.config import RobotConfig, load_config
+from fgslam.events import Event, LaserScan, OdometryEvent, SonarReading
 from fgslam.io.readers.victoria import Sighting, Step, VictoriaPark
-from fgslam.sim.sensors import SimParams
+from fgslam.sim.sensors import SimParams, laser_scan, sonar_echoes
 from fgslam.sim.simulate import events, plan_run
 from fgslam.sim.world import parse_world
 
 # the paper's scheme: wheel odometry, every scan a keyframe, no loop closures (the tests of
 # map management and of the wheel-odometry models that count keyframes per scan)
 PAPER = {"odometry": "wheels", "keyframes": "every-scan", "loop_closures": "off"}
+
+# Groups of the simulator's true errors switched off (keywords of SimParams):
+# the real wheel radii and wheelbase are the nominal ones
+EXACT_WHEELS = {"radius_error_right": 0.0, "radius_error_left": 0.0, "wheelbase_error": 0.0}
+# the laser's ranges carry their random error only (no offset, no error growing with range)
+NO_LASER_BIAS = {"laser_sys_offset": 0.0, "laser_sys_per_metre": 0.0}
+# no mixed pixels, no misclassified sonar echoes, no phantom echoes
+NO_CLUTTER = {"mixed_pixel_prob": 0.0, "misclass_prob": 0.0, "phantom_prob": 0.0}
+# quiet sensors: 5 mm laser noise, sonar 0.3 deg and 0.2 %, every echo detected, no bias, no
+# clutter (the front end's scenes)
+QUIET = SimParams(
+    laser_sigma=0.005,
+    sonar_bearing_sigma_deg=0.3,
+    sonar_range_sigma_rel=0.002,
+    detect_prob=1.0,
+    **NO_LASER_BIAS,
+    **NO_CLUTTER,
+)
+
+
+def standing_scene(
+    world_dict: dict,
+    pose: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    seed: int = 0,
+    params: SimParams = QUIET,
+    cfg: RobotConfig | None = None,
+    t_scan: float = 6.5,
+    sonar: bool = True,
+    sound_bias: float = 0.0,
+) -> tuple[list[Event], np.ndarray]:
+    """Events of a robot standing at ``pose`` (world x, y m, heading rad) for 13 s in the world
+    ``world_dict`` (the world file's keys): odometry without motion, both sonar arrays sweeping
+    (ranges read r (1 + sound_bias)) and one laser scan at ``t_scan`` s. Returns (events in time
+    order, the scan's ranges in m)."""
+    cfg = cfg or load_config()
+    world = parse_world({"name": "scene", **world_dict}, "<scene>")
+    rng = np.random.default_rng(seed)
+    evs: list[Event] = [OdometryEvent(round(0.01 * k, 2), 0, 0) for k in range(1, 1301)]
+    m = cfg.laser.mount
+    x, y, th = pose
+    c, s = math.cos(th), math.sin(th)
+    lp = (x + c * m.x - s * m.y, y + s * m.x + c * m.y, th + math.radians(m.yaw_deg))
+    ranges = laser_scan(world, cfg.laser, params, lp, t_scan, rng)
+    evs.append(LaserScan(t_scan, ranges))
+    if sonar:
+        for i, arr in enumerate(cfg.sonar.arrays):
+            lo, hi = math.radians(arr.pan_min_deg), math.radians(arr.pan_max_deg)
+            for k in range(int(13 * cfg.sonar.cycle_rate)):
+                t = 0.005 + 0.013 * i + k / cfg.sonar.cycle_rate
+                ph = (t / arr.sweep_period + 0.5 * i) % 1.0
+                pan = lo + (hi - lo) * (2 * ph if ph < 0.5 else 2 - 2 * ph)
+                a = th + math.radians(arr.mount.yaw_deg) + pan
+                sp = (
+                    x + c * arr.mount.x - s * arr.mount.y,
+                    y + s * arr.mount.x + c * arr.mount.y,
+                    a,
+                )
+                e = sonar_echoes(world, cfg.sonar, params, sp, t, rng, sound_bias)
+                evs.append(SonarReading(t, i, pan, e))
+    evs.sort(key=lambda e: e.t)
+    return evs, ranges
+
 
 ROOM = {
     "name": "room",
