@@ -259,7 +259,10 @@ def run_child(
     split_: bool = False,
 ) -> dict:
     env = dict(os.environ, PYTHONPATH=str(tree))
-    cmd = [sys.executable, str(Path(__file__).resolve()), "--child", "--logs", log]
+    # the tree's own copy of this script where it has one: module paths move between revisions
+    own = tree / "experiments" / Path(__file__).name
+    script = own if own.is_file() else Path(__file__).resolve()
+    cmd = [sys.executable, str(script), "--child", "--logs", log]
     cmd += ["--backends", *backends]
     if max_scans is not None:
         cmd += ["--max-scans", str(max_scans)]
@@ -352,6 +355,9 @@ def main() -> None:
                 capture_output=True,
             )
             trees.insert(0, (revision(other), other))
+            # the other tree's own script finds the logs beside it, as this one does
+            if DATA.resolve().is_dir():
+                (Path(tmp) / "shared").symlink_to(DATA.resolve().parent)
         try:
             print(
                 "| log | backend | code | log (s) | CPU (s) | wall (s) | real time / CPU | "

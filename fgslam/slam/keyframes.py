@@ -28,12 +28,8 @@ from numpy.typing import NDArray
 from factors.geometry import between_poses, compose_poses, transform_points
 from factors.odometry import Preintegrated, relative_pose
 from factors.sensor_models import time_registration_inflation
-from fgslam.choices import SCANMATCH_CHOICES
 from fgslam.config import KeyframeParams
 from fgslam.scanmatch import Match, MatchParams, Reference, match
-
-POLICIES = SCANMATCH_CHOICES["keyframes"]
-ODOMETRY = SCANMATCH_CHOICES["odometry"]
 
 
 @dataclass
