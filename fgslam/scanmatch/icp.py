@@ -11,6 +11,7 @@ from numpy.typing import NDArray
 
 from factors.geometry import rot, wrap_angle, wrap_angles
 from fgslam.config.robot import MatchParams
+from fgslam.scanmatch.kernels import icp_system
 from fgslam.scanmatch.reference import Reference
 
 
@@ -77,13 +78,10 @@ def _icp(
         R, idx, jj, nrm, r = _correspond(ref, q, pose, params)
         if len(idx) < 3:
             break
-        nb = nrm[idx] @ R  # normal in the query frame: n^T R
-        J = np.column_stack([nb, np.einsum("ij,ij->i", nb, jq[idx])])
         # residual scale: robust (MAD), never below the sensor's
         sigma = max(params.sigma_range, 1.4826 * _median_abs(r))
-        wts = 1.0 / (1.0 + (r / (scale * sigma)) ** 2)
-        H = (J * wts[:, None]).T @ J
-        g = (J * wts[:, None]).T @ r
+        # the Cauchy-weighted normal equations, compiled (fgslam.scanmatch.kernels)
+        H, g = icp_system(nrm, idx, R, q, r, scale * sigma)
         H_d = H.copy()
         H_d[_DIAG3] = H[_DIAG3] + H[_DIAG3] * 1e-6 + 1e-9
         try:
