@@ -78,56 +78,123 @@ def test_a_search_scores_the_same_with_the_reference(monkeypatch):
 
 
 @pytest.mark.parametrize("seed", range(20))
-def test_icp_system_equals_the_reference(seed):
-    from fgslam.scanmatch.kernels import icp_system, icp_system_numpy
+def test_nearest_within_equals_the_kdtree(seed):
+    """The binned nearest-neighbour query gives cKDTree's distances and indices, also with a
+    radius of several cells, queries far outside the points and non-finite ones."""
+    from scipy.spatial import cKDTree
 
-    rng = np.random.default_rng(100 + seed)
-    n = int(rng.integers(3, 600))
-    q = rng.uniform(-20, 20, (n, 2))
-    a = rng.uniform(-np.pi, np.pi, n)
-    nrm = np.column_stack([np.cos(a), np.sin(a)])
-    idx = np.sort(rng.choice(n, int(rng.integers(1, n + 1)), replace=False))
-    th = rng.uniform(-np.pi, np.pi)
-    R = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
-    r = rng.normal(0, 0.05, len(idx)) * rng.choice([1, 20], len(idx))
-    c = float(rng.uniform(0.01, 0.2))
-    H, g = icp_system(nrm, idx, R, q, r, c)
-    H0, g0 = icp_system_numpy(nrm, idx, R, q, r, c)
-    np.testing.assert_allclose(H, H0, rtol=1e-9, atol=1e-9 * np.abs(H0).max())
-    np.testing.assert_allclose(g, g0, rtol=1e-9, atol=1e-9 * np.abs(g0).max())
-    assert np.allclose(H, H.T, rtol=0, atol=1e-12 * np.abs(H).max())
+    from fgslam.scanmatch.kernels import cells, nearest_within, nearest_within_numpy
+
+    rng = np.random.default_rng(200 + seed)
+    n = int(rng.integers(1, 800))
+    p = rng.uniform(-5, 5, (n, 2)) * rng.uniform(0.1, 10)
+    x = np.vstack([rng.uniform(-12, 12, (300, 2)), p[:20] + rng.normal(0, 0.01, (min(n, 20), 2))])
+    x[:3] = [[np.nan, 0.0], [np.inf, 1.0], [1e12, -1e12]]
+    size = float(rng.uniform(0.05, 2.0))
+    dmax = float(rng.uniform(0.01, 3.0) * size * rng.choice([1, 4]))
+    d, j = nearest_within(cells(p, size), x, dmax)
+    assert np.isinf(d[:2]).all() and (j[:2] == n).all()  # no neighbour (the tree refuses them)
+    d, j = d[2:], j[2:]
+    d0, j0 = nearest_within_numpy(cKDTree(p), x[2:], dmax)
+    np.testing.assert_array_equal(j, j0)
+    np.testing.assert_allclose(d, d0, rtol=1e-12, atol=0)
+    assert np.isfinite(d).sum() > 0 or n < 5
 
 
-def test_icp_converges_to_the_same_pose_with_the_reference(monkeypatch):
-    """Point-to-line ICP on a simulated box scan ends at the same pose (1e-9) with the
-    compiled normal equations and with the numpy reference, and near the truth."""
+def test_nearest_within_on_no_points():
+    from fgslam.scanmatch.kernels import cells, nearest_within
+
+    d, j = nearest_within(cells(np.zeros((0, 2)), 0.3), np.array([[0.0, 0.0]]), 0.3)
+    assert np.isinf(d).all() and (j == 0).all()
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_solve3_equals_numpy(seed):
+    from fgslam.scanmatch.kernels import _solve3
+
+    rng = np.random.default_rng(300 + seed)
+    A = rng.normal(size=(3, 3)) * rng.uniform(1e-3, 1e3, 3)
+    b = rng.normal(size=3)
+    np.testing.assert_allclose(_solve3(A, b), np.linalg.solve(A, b), rtol=1e-9, atol=1e-12)
+    assert np.isnan(_solve3(np.zeros((3, 3)), b)).all()
+
+
+def _box_scans(seed):
+    """A reference and a query scan of a box room with a pillar, and the query's true pose
+    in the reference's frame, the reference at a random pose."""
     from fgslam.config import load_config
     from fgslam.scanmatch import MatchParams, Reference, scan_points
-    from fgslam.scanmatch import icp as icp_mod
-    from fgslam.scanmatch.kernels import icp_system_numpy
     from fgslam.sim.raycast import raycast
 
     box = [(0, 0, 8, 0), (8, 0, 8, 5), (8, 5, 0, 5), (0, 5, 0, 0), (3, 2.5, 3.5, 3.0)]
     segs = np.asarray(box, dtype=float)
     bearings = load_config().laser.bearings
-    rng = np.random.default_rng(1)
+    rng = np.random.default_rng(seed)
 
     def scan(pose):
-        r = raycast(pose[:2], pose[2] + bearings, segs)
+        r = raycast(np.asarray(pose[:2]), pose[2] + bearings, segs)
         return scan_points(r + rng.normal(0, 0.01, r.shape), bearings, max_range=20.0)
 
+    a = np.array([rng.uniform(1.5, 2.5), rng.uniform(1.5, 3.5), rng.uniform(-np.pi, np.pi)])
+    b = a + np.array([*rng.uniform(-0.3, 0.3, 2), rng.uniform(-0.1, 0.1)])
     params = MatchParams.from_config(load_config())
-    ref = Reference.build(scan((2.0, 2.0, 0.1)), params)
-    q = scan((2.2, 2.1, 0.15))
-    truth = np.array(
-        [0.2 * np.cos(0.1) + 0.1 * np.sin(0.1), -0.2 * np.sin(0.1) + 0.1 * np.cos(0.1), 0.05]
-    )
-    start = truth + np.array([0.05, -0.04, 0.02])
-    compiled = icp_mod._icp(ref, q, start, params)
-    monkeypatch.setattr(icp_mod, "icp_system", icp_system_numpy)
-    reference = icp_mod._icp(ref, q, start, params)
-    assert compiled is not None and reference is not None
-    np.testing.assert_allclose(compiled.pose, reference.pose, rtol=0, atol=1e-9)
-    assert compiled.iterations == reference.iterations
-    assert np.hypot(*(compiled.pose[:2] - truth[:2])) < 0.02
-    assert abs(compiled.pose[2] - truth[2]) < 0.005
+    ref = Reference.build(scan(a), params)
+    c, s = np.cos(a[2]), np.sin(a[2])
+    d = b[:2] - a[:2]
+    truth = np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1], b[2] - a[2]])
+    return ref, scan(b), truth, params, rng
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_correspond_equals_the_reference(seed):
+    from fgslam.scanmatch import icp as icp_mod
+
+    ref, q, truth, params, rng = _box_scans(seed)
+    pose = truth + rng.normal(0, 0.05, 3)
+    _, idx, jj, nrm, r = icp_mod._correspond(ref, q, pose, params)
+    _, idx0, jj0, nrm0, r0 = icp_mod._correspond_numpy(ref, q, pose, params)
+    np.testing.assert_array_equal(idx, idx0)
+    np.testing.assert_array_equal(jj[idx], jj0[idx0])
+    np.testing.assert_array_equal(nrm[idx], nrm0[idx0])
+    np.testing.assert_allclose(r, r0, rtol=0, atol=1e-12)
+    assert len(idx) > 0.5 * len(q)
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_icp_equals_the_reference_and_finds_the_truth(seed):
+    """The compiled ICP ends at the numpy reference's pose (1e-9) after as many iterations,
+    with the same inliers, and near the true pose."""
+    from factors.geometry import wrap_angle
+    from fgslam.scanmatch import icp as icp_mod
+
+    ref, q, truth, params, rng = _box_scans(seed)
+    start = truth + np.array([*rng.uniform(-0.06, 0.06, 2), rng.uniform(-0.02, 0.02)])
+    got = icp_mod._icp(ref, q, start, params)
+    want = icp_mod._icp_numpy(ref, q, start, params)
+    assert got is not None and want is not None
+    np.testing.assert_allclose(got.pose, want.pose, rtol=0, atol=1e-9)
+    assert (got.iterations, got.converged) == (want.iterations, want.converged)
+    np.testing.assert_array_equal(got.order, want.order)
+    np.testing.assert_allclose(got.J, want.J, rtol=0, atol=1e-9)
+    assert np.hypot(*(got.pose[:2] - truth[:2])) < 0.02
+    assert abs(wrap_angle(got.pose[2] - truth[2])) < 0.005
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_icp_joins_a_basin_already_found_as_the_reference_does(seed):
+    """Given the converged pose as a basin already found (its angle shifted by a full turn
+    and back: the comparison wraps), both ICPs stop and return None; given a pose far away,
+    both run to the end."""
+    from fgslam.scanmatch import icp as icp_mod
+
+    ref, q, truth, params, _ = _box_scans(seed)
+    start = truth + np.array([0.04, -0.03, 0.01])
+    done = icp_mod._icp_numpy(ref, q, start, params).pose
+    for shift in (2 * np.pi, 0.0):
+        join = ((done + np.array([0, 0, shift]))[None], 0.02, 0.01)
+        if shift == 0.0:
+            assert icp_mod._icp_numpy(ref, q, start, params, join) is None
+        assert icp_mod._icp(ref, q, start, params, join) is None
+    far = ((done + np.array([3.0, 0, 0]))[None], 0.02, 0.01)
+    assert icp_mod._icp(ref, q, start, params, far) is not None
+    assert icp_mod._icp_numpy(ref, q, start, params, far) is not None

@@ -4,6 +4,7 @@ Gauss-Newton in the query's body tangent (GTSAM's Pose2 retract), the inliers' J
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -11,7 +12,7 @@ from numpy.typing import NDArray
 
 from factors.geometry import rot, wrap_angle, wrap_angles
 from fgslam.config.robot import MatchParams
-from fgslam.scanmatch.kernels import icp_system
+from fgslam.scanmatch.kernels import correspond, icp_loop, icp_system_numpy
 from fgslam.scanmatch.reference import Reference
 
 
@@ -27,6 +28,17 @@ class _Icp:
 
 
 def _correspond(ref: Reference, q: NDArray, pose: NDArray, params: MatchParams) -> tuple:
+    """:func:`_correspond_numpy`, compiled (:func:`fgslam.scanmatch.kernels.correspond`)."""
+    R = rot(float(pose[2]))
+    idx, jj, r = correspond(ref.cells, ref.normals, ref.anchors, q, pose, params.corr_distance)
+    nrm = np.full((len(q), 2), np.nan)
+    nrm[idx] = ref.normals[jj]
+    full = np.zeros(len(q), dtype=np.int64)
+    full[idx] = jj
+    return R, idx, full, nrm, r
+
+
+def _correspond_numpy(ref: Reference, q: NDArray, pose: NDArray, params: MatchParams) -> tuple:
     """Point-to-line correspondences of the query points (query frame) placed at ``pose``:
     the rotation R, the indices of the query points with a neighbour within
     ``corr_distance`` that has a normal, their neighbours ``jj`` (for every query point),
@@ -63,25 +75,49 @@ def _icp(
     params: MatchParams,
     join: tuple[NDArray, float, float] | None = None,
 ) -> _Icp | None:
+    """:func:`_icp_numpy`, its iterations compiled (:func:`fgslam.scanmatch.kernels.icp_loop`)."""
+    pose, it, converged, joined = icp_loop(
+        ref.cells,
+        ref.normals,
+        ref.anchors,
+        q,
+        pose0.astype(float),
+        params.sigma_range,
+        params.robust_scale,
+        params.corr_distance,
+        params.icp_iterations,
+        join,
+    )
+    if joined:
+        return None
+    pose[2] = wrap_angle(float(pose[2]))
+    return _inliers(ref, q, pose, params, it, converged, _correspond)
+
+
+def _icp_numpy(
+    ref: Reference,
+    q: NDArray,
+    pose0: NDArray,
+    params: MatchParams,
+    join: tuple[NDArray, float, float] | None = None,
+) -> _Icp | None:
     """Point-to-line ICP from ``pose0``. ``join``: (poses (k, 3), xy and theta tolerances):
     stop and return None once an iterate, moving by less than the tolerances' tenth, lies
     within them of one of those poses (other runs' converged results): this run has reached
     that basin's fixed point (the caller drops runs that end in a basin already found)."""
     pose = pose0.astype(float).copy()
-    sigma = max(params.sigma_range, 1e-4)
     scale = params.robust_scale
-    jq = np.column_stack([-q[:, 1], q[:, 0]])
     converged = False
     it = 0
     assert ref.tree is not None
     for it in range(1, params.icp_iterations + 1):  # noqa: B007
-        R, idx, jj, nrm, r = _correspond(ref, q, pose, params)
+        R, idx, _, nrm, r = _correspond_numpy(ref, q, pose, params)
         if len(idx) < 3:
             break
         # residual scale: robust (MAD), never below the sensor's
         sigma = max(params.sigma_range, 1.4826 * _median_abs(r))
-        # the Cauchy-weighted normal equations, compiled (fgslam.scanmatch.kernels)
-        H, g = icp_system(nrm, idx, R, q, r, scale * sigma)
+        # the Cauchy-weighted normal equations
+        H, g = icp_system_numpy(nrm, idx, R, q, r, scale * sigma)
         H_d = H.copy()
         H_d[_DIAG3] = H[_DIAG3] + H[_DIAG3] * 1e-6 + 1e-9
         try:
@@ -103,10 +139,22 @@ def _icp(
         if np.hypot(delta[0], delta[1]) < 3e-4 and abs(delta[2]) < 3e-5:
             converged = True
             break
-    # final correspondences at the estimate: inliers
-    R, idx, jj, nrm, r = _correspond(ref, q, pose, params)
-    if len(r):
-        sigma = max(params.sigma_range, 1.4826 * _median_abs(r))
+    return _inliers(ref, q, pose, params, it, converged, _correspond_numpy)
+
+
+def _inliers(
+    ref: Reference,
+    q: NDArray,
+    pose: NDArray,
+    params: MatchParams,
+    it: int,
+    converged: bool,
+    correspond_: Callable,
+) -> _Icp:
+    """The final correspondences at the estimate ``pose``: the inliers and their Jacobians."""
+    jq = np.column_stack([-q[:, 1], q[:, 0]])
+    R, idx, jj, nrm, r = correspond_(ref, q, pose, params)
+    sigma = max(params.sigma_range, 1.4826 * _median_abs(r)) if len(r) else params.sigma_range
     inl = np.abs(r) < params.inlier_sigmas * sigma
     idx, r = idx[inl], r[inl]
     nb = nrm[idx] @ R

@@ -8,18 +8,25 @@ candidate ``k`` is ``sum_j flat[base[r[k], j] + off[k]]``. Integer sums: the com
 the reference give the same numbers, not just close ones. The compiled loop reads the cells
 in place instead of building the (candidates x points) index array of the reference.
 
-:func:`icp_system`: one Gauss-Newton step's normal equations of the point-to-line ICP
-(:mod:`fgslam.scanmatch.icp`): for the corresponded query points ``idx``, the Jacobian row
+:func:`icp_loop`: the point-to-line ICP's Gauss-Newton iterations
+(:mod:`fgslam.scanmatch.icp`, whose ``_icp_numpy`` is the reference): correspondences to the
+nearest reference point within ``corr_distance`` (:func:`correspond`, over the points binned
+in :class:`Cells`, the reference being scipy's cKDTree), the Jacobian row
 ``J = (n^T R, n^T R J_q)`` in the query's body tangent, Cauchy weights
-``w = 1 / (1 + (r / c)^2)``, ``H = sum w J J^T`` and ``g = sum w J r``. Float sums in another
-order than numpy's: equal to the reference to rounding (1e-12 relative), not bit for bit.
+``w = 1 / (1 + (r / c)^2)``, ``H = sum w J J^T`` and ``g = sum w J r`` (the reference:
+:func:`icp_system_numpy`), a 3x3 solve and GTSAM's Pose2 retract. Float sums in another
+order than numpy's: equal to the reference to rounding, not bit for bit.
 """
 
 from __future__ import annotations
 
+import math
+from typing import NamedTuple
+
 import numba
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial import cKDTree
 
 
 def gather_sums_numpy(
@@ -79,41 +86,294 @@ def icp_system_numpy(
     return (J * wts[:, None]).T @ J, (J * wts[:, None]).T @ r
 
 
+class Cells(NamedTuple):
+    """Points binned on a square grid for fixed-radius nearest-neighbour queries in compiled
+    code: cell ``(cx, cy) = floor((p - lo) / size)``, key ``cx * ny + cy``; ``keys`` the
+    occupied cells' keys (sorted), the points of ``keys[t]`` are
+    ``order[starts[t]:starts[t + 1]]``. Build with :func:`cells`."""
+
+    points: NDArray[np.float64]  # (n, 2), m
+    lo: NDArray[np.float64]  # (2,) corner of cell (0, 0), m
+    size: float  # cell side, m
+    ny: int  # cells along y
+    nx: int  # cells along x
+    keys: NDArray[np.int64]
+    starts: NDArray[np.int64]  # (len(keys) + 1,)
+    order: NDArray[np.int64]
+
+
+def cells(points: NDArray[np.float64], size: float) -> Cells:
+    """Bin ``points`` ((n, 2) finite, m) in cells of ``size`` (m, > 0)."""
+    p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
+    if len(p) == 0:
+        z = np.zeros(0, dtype=np.int64)
+        return Cells(p, np.zeros(2), float(size), 1, 1, z, np.zeros(1, dtype=np.int64), z)
+    lo = p.min(axis=0)
+    ij = np.floor((p - lo) / size).astype(np.int64)
+    nx, ny = int(ij[:, 0].max()) + 1, int(ij[:, 1].max()) + 1
+    key = ij[:, 0] * ny + ij[:, 1]
+    order = np.argsort(key, kind="stable")
+    keys, first = np.unique(key[order], return_index=True)
+    starts = np.append(first, len(p)).astype(np.int64)
+    return Cells(p, lo, float(size), ny, nx, keys.astype(np.int64), starts, order)
+
+
+def nearest_within_numpy(
+    tree: cKDTree, x: NDArray[np.float64], dmax: float
+) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    """The reference: each row of ``x``'s nearest point closer than ``dmax`` (m): its
+    distance (inf where none) and index (``n`` where none), as ``cKDTree.query`` gives."""
+    return tree.query(x, distance_upper_bound=dmax)
+
+
 @numba.njit(cache=True, nogil=True)
-def _icp_system(nrm, idx, R, q, r, c):  # pragma: no cover - compiled
+def _nearest(pts, lo0, lo1, size, ny, nx, keys, starts, order, x, y, dmax):  # pragma: no cover
+    """Index of the point nearest to (x, y) closer than dmax (-1 if none), and its squared
+    distance. Ties go to the lower index."""
+    best, bd = -1, dmax * dmax
+    rings = math.ceil(dmax / size)
+    fx, fy = (x - lo0) / size, (y - lo1) / size
+    if not (fx > -rings - 1.0 and fx < nx + rings + 1.0):  # also NaN
+        return best, bd
+    if not (fy > -rings - 1.0 and fy < ny + rings + 1.0):
+        return best, bd
+    ix, iy = math.floor(fx), math.floor(fy)
+    for cx in range(max(ix - rings, 0), min(ix + rings, nx - 1) + 1):
+        for cy in range(max(iy - rings, 0), min(iy + rings, ny - 1) + 1):
+            key = cx * ny + cy
+            t = np.searchsorted(keys, key)
+            if t == keys.shape[0] or keys[t] != key:
+                continue
+            for u in range(starts[t], starts[t + 1]):
+                j = order[u]
+                dx, dy = pts[j, 0] - x, pts[j, 1] - y
+                d2 = dx * dx + dy * dy
+                if d2 < bd or (d2 == bd and best >= 0 and j < best):
+                    best, bd = j, d2
+    return best, bd
+
+
+@numba.njit(cache=True, nogil=True)
+def _nearest_all(pts, lo, size, ny, nx, keys, starts, order, x, dmax):  # pragma: no cover
+    n = x.shape[0]
+    d = np.empty(n)
+    j = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        b, bd = _nearest(
+            pts, lo[0], lo[1], size, ny, nx, keys, starts, order, x[i, 0], x[i, 1], dmax
+        )
+        if b < 0:
+            d[i], j[i] = np.inf, pts.shape[0]
+        else:
+            d[i], j[i] = math.sqrt(bd), b
+    return d, j
+
+
+def nearest_within(
+    c: Cells, x: NDArray[np.float64], dmax: float
+) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    """:func:`nearest_within_numpy`, compiled over :class:`Cells` (the same results except
+    between points at exactly equal distance: the lower index here)."""
+    x = np.ascontiguousarray(x, dtype=np.float64).reshape(-1, 2)
+    return _nearest_all(c.points, c.lo, c.size, c.ny, c.nx, c.keys, c.starts, c.order, x, dmax)
+
+
+@numba.njit(cache=True, nogil=True)
+def _correspond(
+    pts, lo, size, ny, nx, keys, starts, order, normals, anchors, q, pose, dmax
+):  # pragma: no cover
+    """Point-to-line correspondences of the query points ``q`` (query frame) at ``pose``:
+    the corresponded points' indices, their neighbours and signed residuals (m)."""
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    n = q.shape[0]
+    idx = np.empty(n, dtype=np.int64)
+    jj = np.empty(n, dtype=np.int64)
+    r = np.empty(n)
+    m = 0
+    for i in range(n):
+        x = c * q[i, 0] - s * q[i, 1] + pose[0]
+        y = s * q[i, 0] + c * q[i, 1] + pose[1]
+        j, _ = _nearest(pts, lo[0], lo[1], size, ny, nx, keys, starts, order, x, y, dmax)
+        if j < 0 or not np.isfinite(normals[j, 0]):
+            continue
+        idx[m], jj[m] = i, j
+        r[m] = normals[j, 0] * (x - anchors[j, 0]) + normals[j, 1] * (y - anchors[j, 1])
+        m += 1
+    return idx[:m], jj[:m], r[:m]
+
+
+def correspond(
+    c: Cells,
+    normals: NDArray[np.float64],
+    anchors: NDArray[np.float64],
+    q: NDArray[np.float64],
+    pose: NDArray[np.float64],
+    dmax: float,
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]:
+    """Point-to-line correspondences of ``q`` ((N, 2), query frame, m) placed at ``pose``
+    (x, y, theta) in the reference frame: the query points with a reference point closer
+    than ``dmax`` that has a normal, those neighbours, and the signed residuals (m)."""
+    return _correspond(
+        c.points,
+        c.lo,
+        c.size,
+        c.ny,
+        c.nx,
+        c.keys,
+        c.starts,
+        c.order,
+        normals,
+        anchors,
+        np.ascontiguousarray(q, dtype=np.float64),
+        np.asarray(pose, dtype=np.float64),
+        dmax,
+    )
+
+
+@numba.njit(cache=True, nogil=True)
+def _solve3(A, b):  # pragma: no cover - compiled
+    """A x = b for 3x3 A by Gaussian elimination with partial pivoting; NaNs if singular."""
+    M = A.copy()
+    x = b.copy()
+    for k in range(3):
+        p = k
+        for i in range(k + 1, 3):
+            if abs(M[i, k]) > abs(M[p, k]):
+                p = i
+        if M[p, k] == 0.0:
+            return np.full(3, np.nan)
+        if p != k:
+            for col in range(3):
+                M[k, col], M[p, col] = M[p, col], M[k, col]
+            x[k], x[p] = x[p], x[k]
+        for i in range(k + 1, 3):
+            f = M[i, k] / M[k, k]
+            for col in range(k, 3):
+                M[i, col] -= f * M[k, col]
+            x[i] -= f * x[k]
+    for k in range(2, -1, -1):
+        acc = x[k]
+        for col in range(k + 1, 3):
+            acc -= M[k, col] * x[col]
+        x[k] = acc / M[k, k]
+    return x
+
+
+@numba.njit(cache=True, nogil=True)
+def _icp_loop(  # pragma: no cover - compiled
+    pts,
+    lo,
+    size,
+    ny,
+    nx,
+    keys,
+    starts,
+    order,
+    normals,
+    anchors,
+    q,
+    pose0,
+    sigma_range,
+    scale,
+    dmax,
+    iterations,
+    join,
+    jxy,
+    jth,
+):
+    pose = pose0.copy()
+    converged, joined, it = False, False, 0
     H = np.zeros((3, 3))
     g = np.zeros(3)
     J = np.empty(3)
-    for k in range(idx.shape[0]):
-        i = idx[k]
-        n0, n1 = nrm[i, 0], nrm[i, 1]
-        J[0] = n0 * R[0, 0] + n1 * R[1, 0]
-        J[1] = n0 * R[0, 1] + n1 * R[1, 1]
-        J[2] = -J[0] * q[i, 1] + J[1] * q[i, 0]
-        u = r[k] / c
-        w = 1.0 / (1.0 + u * u)
+    for it in range(1, iterations + 1):
+        idx, jj, r = _correspond(
+            pts, lo, size, ny, nx, keys, starts, order, normals, anchors, q, pose, dmax
+        )
+        m = idx.shape[0]
+        if m < 3:
+            break
+        sigma = max(sigma_range, 1.4826 * np.median(np.abs(r)))
+        cc = scale * sigma
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        H[:] = 0.0
+        g[:] = 0.0
+        for k in range(m):
+            i, j = idx[k], jj[k]
+            n0, n1 = normals[j, 0], normals[j, 1]
+            J[0] = n0 * c + n1 * s
+            J[1] = -n0 * s + n1 * c
+            J[2] = -J[0] * q[i, 1] + J[1] * q[i, 0]
+            u = r[k] / cc
+            w = 1.0 / (1.0 + u * u)
+            for a in range(3):
+                wa = w * J[a]
+                g[a] += wa * r[k]
+                for b in range(3):
+                    H[a, b] += wa * J[b]
+        Hd = H.copy()
         for a in range(3):
-            wa = w * J[a]
-            g[a] += wa * r[k]
-            for b in range(3):
-                H[a, b] += wa * J[b]
-    return H, g
+            Hd[a, a] = H[a, a] + H[a, a] * 1e-6 + 1e-9
+        delta = -_solve3(Hd, g)
+        if not np.isfinite(delta).all():
+            break
+        # pose * Exp(delta) (GTSAM's Pose2 retract); the angle is wrapped by the caller
+        w = delta[2]
+        if abs(w) < 1e-9:
+            v0, v1 = delta[0], delta[1]
+        else:
+            sw, cw = math.sin(w), math.cos(w)
+            v0 = (sw * delta[0] - (1 - cw) * delta[1]) / w
+            v1 = ((1 - cw) * delta[0] + sw * delta[1]) / w
+        pose = np.array([pose[0] + c * v0 - s * v1, pose[1] + s * v0 + c * v1, pose[2] + w])
+        step_xy = math.hypot(delta[0], delta[1])
+        if join.shape[0] and step_xy < 0.1 * jxy and abs(w) < 0.1 * jth:
+            cj = math.cos(jth)  # |wrapped angle difference| <= jth  <=>  cos(difference) >= cj
+            for k in range(join.shape[0]):
+                if math.hypot(join[k, 0] - pose[0], join[k, 1] - pose[1]) <= jxy:
+                    if math.cos(join[k, 2] - pose[2]) >= cj:
+                        joined = True
+                        return pose, it, converged, joined
+        if step_xy < 3e-4 and abs(w) < 3e-5:
+            converged = True
+            break
+    return pose, it, converged, joined
 
 
-def icp_system(
-    nrm: NDArray[np.float64],
-    idx: NDArray[np.int64],
-    R: NDArray[np.float64],
+def icp_loop(
+    c: Cells,
+    normals: NDArray[np.float64],
+    anchors: NDArray[np.float64],
     q: NDArray[np.float64],
-    r: NDArray[np.float64],
-    c: float,
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """:func:`icp_system_numpy`, compiled (the same arguments and results, to rounding)."""
-    return _icp_system(
-        np.ascontiguousarray(nrm, dtype=np.float64),
-        np.ascontiguousarray(idx, dtype=np.int64),
-        np.ascontiguousarray(R, dtype=np.float64),
+    pose0: NDArray[np.float64],
+    sigma_range: float,
+    robust_scale: float,
+    dmax: float,
+    iterations: int,
+    join: tuple[NDArray[np.float64], float, float] | None = None,
+) -> tuple[NDArray[np.float64], int, bool, bool]:
+    """The Gauss-Newton iterations of :func:`fgslam.scanmatch.icp._icp_numpy` (its numpy
+    reference), compiled: the pose reached (angle not wrapped), the iterations run, whether
+    they converged, and whether they joined one of ``join``'s poses (then stopped)."""
+    jp, jxy, jth = (np.zeros((0, 3)), 0.0, 0.0) if join is None else join
+    return _icp_loop(
+        c.points,
+        c.lo,
+        c.size,
+        c.ny,
+        c.nx,
+        c.keys,
+        c.starts,
+        c.order,
+        normals,
+        anchors,
         np.ascontiguousarray(q, dtype=np.float64),
-        np.ascontiguousarray(r, dtype=np.float64),
-        float(c),
+        np.asarray(pose0, dtype=np.float64),
+        float(sigma_range),
+        float(robust_scale),
+        float(dmax),
+        int(iterations),
+        np.ascontiguousarray(jp, dtype=np.float64).reshape(-1, 3),
+        float(jxy),
+        float(jth),
     )

@@ -12,6 +12,7 @@ from scipy.spatial import cKDTree
 
 from factors.geometry import wrap_angle_half_open
 from fgslam.config.robot import MatchParams
+from fgslam.scanmatch.kernels import Cells, cells
 from fgslam.scanmatch.points import _clean
 
 
@@ -30,6 +31,7 @@ class Reference:
     normal_var: NDArray[np.float64]  # (n,) variance of each normal's angle (rad^2)
     n_points: int
     tree: cKDTree | None
+    cells: Cells  # the points binned for ICP's compiled nearest-neighbour queries
     resolution: float
     origin: NDArray[np.float64]  # reference-frame position of cell (0, 0)'s corner
     grid: NDArray[np.uint8]  # likelihood in [0, 1] x 255 over the points' bounding box
@@ -62,6 +64,7 @@ class Reference:
         self._blur = max(_blur(params), self.resolution)
         self.normals = np.full((len(p), 2), np.nan)
         self.tree = cKDTree(p) if len(p) else None
+        self.cells = cells(p, max(params.corr_distance, 0.05))
         self.anchors = p.copy()
         self.normal_var = np.zeros(len(p))
         if len(p) >= 3:
