@@ -198,3 +198,88 @@ def test_icp_joins_a_basin_already_found_as_the_reference_does(seed):
     far = ((done + np.array([3.0, 0, 0]))[None], 0.02, 0.01)
     assert icp_mod._icp(ref, q, start, params, far) is not None
     assert icp_mod._icp_numpy(ref, q, start, params, far) is not None
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_splat_equals_the_reference(seed):
+    from fgslam.scanmatch.kernels import splat, splat_numpy
+
+    rng = np.random.default_rng(400 + seed)
+    size = int(rng.integers(100, 20_000))
+    reach = int(rng.integers(0, 30))
+    occ = np.unique(rng.integers(reach, size - reach, int(rng.integers(0, 300))))
+    off = np.arange(-reach, reach + 1)
+    val = rng.integers(0, 256, len(off)).astype(np.uint8)
+    np.testing.assert_array_equal(splat(occ, off, val, size), splat_numpy(occ, off, val, size))
+    with pytest.raises(IndexError):
+        splat(np.array([size - 1]), np.array([0, 1]), np.array([1, 2], np.uint8), size)
+
+
+def _lines_and_clutter(rng):
+    """Points on a few noisy lines (walls) and a cloud of clutter, m."""
+    parts = []
+    for _ in range(int(rng.integers(1, 6))):
+        a, b = rng.uniform(-8, 8, 2), rng.uniform(-8, 8, 2)
+        t = rng.uniform(0, 1, int(rng.integers(5, 200)))[:, None]
+        parts.append(a + t * (b - a) + rng.normal(0, rng.uniform(0.001, 0.03), (len(t), 2)))
+    parts.append(rng.uniform(-8, 8, (int(rng.integers(0, 100)), 2)))
+    return np.vstack(parts)
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_local_lines_equal_the_reference(seed):
+    """The compiled local lines give the normals, centroids and angle variances of the numpy
+    reference (cKDTree's k nearest) to 1e-9, and the same points have a line."""
+    from scipy.spatial import cKDTree
+
+    from fgslam.scanmatch import MatchParams
+    from fgslam.scanmatch.kernels import cells, local_lines
+    from fgslam.scanmatch.reference import _normals_numpy
+
+    rng = np.random.default_rng(500 + seed)
+    p = _lines_and_clutter(rng)
+    params = MatchParams(
+        normal_k=int(rng.integers(3, 40)), normal_radius=float(rng.uniform(0.05, 0.8))
+    )
+    size = float(rng.uniform(0.05, 1.0))
+    n, mean, var = local_lines(
+        cells(p, size), params.normal_k, params.normal_radius, params.sigma_range**2
+    )
+    n0, mean0, var0 = _normals_numpy(p, cKDTree(p), params)
+    np.testing.assert_array_equal(np.isnan(n[:, 0]), np.isnan(n0[:, 0]))
+    line = ~np.isnan(n[:, 0])
+    assert line.sum() >= 10  # not a vacuous comparison
+    # a normal's sign is the arctan2's: compare as the same direction
+    np.testing.assert_allclose(n[line], n0[line], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(mean, mean0, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(var, var0, rtol=1e-9, atol=1e-15)
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_polyline_cells_equal_the_reference(seed):
+    """The cells of the reference's polyline (points joined to their two nearest within the
+    link distance) are the numpy reference's, on walls with clutter and on a tiny cloud."""
+    from scipy.spatial import cKDTree
+
+    from fgslam.scanmatch.kernels import cells, polyline_cells
+    from fgslam.scanmatch.reference import _polyline_cells_numpy
+
+    rng = np.random.default_rng(600 + seed)
+    p = _lines_and_clutter(rng) if seed % 5 else rng.uniform(0, 0.2, (int(rng.integers(1, 4)), 2))
+    res = float(rng.uniform(0.01, 0.1))
+    link = float(rng.uniform(0.0, 0.6))
+    reach = 3
+    origin = p.min(axis=0) - reach * res
+    shape = tuple(np.floor((p.max(axis=0) - p.min(axis=0)) / res).astype(int) + 2 * reach + 1)
+    got = polyline_cells(cells(p, float(rng.uniform(0.05, 0.5))), link, origin, res, shape)
+    want = _polyline_cells_numpy(p, cKDTree(p), link, origin, res, shape)
+    np.testing.assert_array_equal(got, want)
+    assert len(got) >= 1
+
+
+def test_a_point_outside_the_polyline_grid_is_refused():
+    from fgslam.scanmatch.kernels import cells, polyline_cells
+
+    p = np.array([[0.0, 0.0], [1.0, 0.0]])
+    with pytest.raises(IndexError):
+        polyline_cells(cells(p, 0.3), 0.3, np.array([0.5, 0.0]), 0.1, (20, 5))

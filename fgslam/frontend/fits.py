@@ -26,6 +26,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from factors.geometry import wrap_angle
 from factors.line import normalize_line
+from fgslam.frontend import kernels
 
 
 class FitRejected(Exception):
@@ -76,10 +77,15 @@ def residual_scale(res: ArrayLike, n_params: int, sigma_r: float, level: float |
     degrees of freedom; else 1 (a fit consistent with the range model keeps its covariance).
     ``level`` None: always 1."""
     res = np.asarray(res, dtype=float)
-    dof = res.size - n_params
+    return _residual_scale(float(np.sum(res * res)), res.size, n_params, sigma_r, level)
+
+
+def _residual_scale(ssq: float, n: int, n_params: int, sigma_r: float, level: float | None):
+    """:func:`residual_scale` from the sum ``ssq`` of the ``n`` squared residuals."""
+    dof = n - n_params
     if level is None or dof <= 0:
         return 1.0
-    q = float(np.sum(res * res)) / sigma_r**2
+    q = ssq / sigma_r**2
     if q <= _chi2_quantile(level, dof):
         return 1.0
     return q / dof
@@ -128,6 +134,11 @@ def tls_line(x: NDArray[np.float64], y: NDArray[np.float64]) -> tuple[float, flo
     """Total-least-squares (alpha, d >= 0) of Cartesian points."""
     mx, my = x.mean(), y.mean()
     sxx, syy, sxy = ((x - mx) ** 2).sum(), ((y - my) ** 2).sum(), ((x - mx) * (y - my)).sum()
+    return _tls_of_moments(mx, my, sxx, syy, sxy)
+
+
+def _tls_of_moments(mx: float, my: float, sxx: float, syy: float, sxy: float):
+    """:func:`tls_line` from the points' means and centred second moments (sums)."""
     alpha = 0.5 * math.atan2(-2 * sxy, syy - sxx)
     d = mx * math.cos(alpha) + my * math.sin(alpha)
     return normalize_line(alpha, d)
@@ -163,20 +174,73 @@ def fit_line(
     if trim_ends is None:
         return fit
     a, d = fit.params
+    # the first and last beam (among ok) whose perpendicular residual is within the bound;
+    # the numpy reference: _trim_bounds_numpy
+    lo, hi, inside, n_ok = kernels.trim_bounds(phi, r, ok, float(a), float(d), float(trim_ends))
+    if inside < 3 or (lo == 0 and hi == n_ok - 1):
+        return fit
+    idx = np.flatnonzero(ok)
+    ok = ok.copy()
+    ok[idx[:lo]] = False
+    ok[idx[hi + 1 :]] = False
+    return _fit_line_once(phi, r, ok, sigma_r, systematic, max_iter, residual_test, sources)
+
+
+def _trim_bounds_numpy(phi, r, ok, a, d, trim_ends) -> tuple[int, int, int, int]:
+    """The reference of :func:`fgslam.frontend.kernels.trim_bounds`."""
     idx = np.flatnonzero(ok)
     e = r[idx] * np.cos(a - phi[idx]) - d  # perpendicular residuals, m
     spread = 1.4826 * float(np.median(np.abs(e - np.median(e))))
     inside = np.flatnonzero(np.abs(e) <= trim_ends * max(spread, 1e-3))
-    if inside.size < 3 or (inside[0] == 0 and inside[-1] == idx.size - 1):
-        return fit
-    ok = ok.copy()
-    ok[idx[: inside[0]]] = False
-    ok[idx[inside[-1] + 1 :]] = False
-    return _fit_line_once(phi, r, ok, sigma_r, systematic, max_iter, residual_test, sources)
+    if inside.size == 0:
+        return -1, -1, 0, idx.size
+    return int(inside[0]), int(inside[-1]), int(inside.size), idx.size
+
+
+def _rows(cols: Sequence[ArrayLike], n: int) -> NDArray[np.float64]:
+    """Each of ``cols`` (a scalar or one per beam) on the ``n`` beams: a (len(cols), n)
+    array."""
+    out = np.empty((len(cols), n))
+    for k, e in enumerate(cols):
+        out[k] = e
+    return out
 
 
 def _fit_line_once(phi, r, ok, sigma_r, systematic, max_iter, residual_test, sources) -> Fit:
-    """:func:`fit_line` on the beams ``ok``."""
+    """:func:`fit_line` on the beams ``ok``, compiled (:func:`fgslam.frontend.kernels.line_fit`;
+    the reference: :func:`_fit_line_once_numpy`, which also takes the steps the kernel hands
+    back)."""
+    alpha, d = _tls_of_moments(*kernels.ok_sums(phi, r, ok))
+    if d < 1e-3:
+        raise FitRejected("through_sensor", "the line passes through the sensor")
+    S, E = _rows(systematic, ok.size), _rows(sources, ok.size)
+    out = kernels.line_fit(phi, r, ok, alpha, d, max_iter, S, E)
+    outcome, alpha, d, it, n, ssq, inv, cond, sys_sum, J = out
+    if outcome == kernels.FIT_FALLBACK:
+        return _fit_line_once_numpy(
+            phi, r, ok, sigma_r, systematic, max_iter, residual_test, sources
+        )
+    if outcome == kernels.FIT_GRAZING:
+        raise FitRejected("grazing", "a beam runs (almost) parallel to the line")
+    if outcome == kernels.FIT_NO_CONVERGENCE:
+        raise FitRejected("no_convergence", f"{max_iter} iterations")
+    if d <= 0:
+        raise FitRejected("through_sensor", "the fitted line passes behind the sensor")
+    scale = _residual_scale(ssq, n, 2, sigma_r, residual_test)
+    if not np.isfinite(cond) or cond > 1e12:
+        raise FitRejected("ill_conditioned", f"condition number {cond:.3g}")
+    cov_random = scale * sigma_r**2 * inv
+    cov = cov_random + np.diag(sys_sum**2)
+    rms = math.sqrt(ssq / n)
+    params = np.array([wrap_angle(alpha), d])
+    J = J if len(sources) else None
+    return Fit(params, cov, cov_random, it, rms, ok, scale=scale, source_jacobian=J)
+
+
+def _fit_line_once_numpy(
+    phi, r, ok, sigma_r, systematic, max_iter, residual_test, sources
+) -> Fit:
+    """:func:`fit_line` on the beams ``ok``: the numpy reference of :func:`_fit_line_once`."""
     p, rr = phi[ok], r[ok]
     alpha, d = tls_line(rr * np.cos(p), rr * np.sin(p))
     if d < 1e-3:

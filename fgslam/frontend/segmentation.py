@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from fgslam.config import SegmentParams
+from fgslam.frontend import kernels
 from fgslam.frontend.features import End
 
 
@@ -31,6 +32,10 @@ class Segment:
         return self.last - self.first + 1
 
 
+_ENDS = tuple(End(v) for v in kernels.END_CODES)  # the kernel's end codes
+_SONAR = kernels.END_CODES.index(End.SONAR.value)
+
+
 def segment_scan(
     phi: NDArray[np.float64],
     r: NDArray[np.float64],
@@ -43,7 +48,51 @@ def segment_scan(
     ``sonar_dist[i]`` the distance to it. A line reaching such a cluster ends just before the
     point nearest to the cluster (the jamb or corner itself), and the next line starts after it.
 
-    Returns the accepted segments and counts of rejected ones by reason.
+    Returns the accepted segments and counts of rejected ones by reason. The line growing is
+    compiled (:func:`fgslam.frontend.kernels.grow_lines`); :func:`segment_scan_reference` is
+    the same in plain Python, and makes the same decisions.
+    """
+    n = len(r)
+    xs, ys = r * np.cos(phi), r * np.sin(phi)  # the reference's points, bit for bit
+    valid = np.isfinite(r) & (r > 0) & (r <= params.max_range)
+    near = sonar_near if sonar_near is not None else np.full(n, -1)
+    ndist = sonar_dist if sonar_dist is not None else np.zeros(n)
+    first, last, start, end, cl, too_few = kernels.grow_lines(
+        xs,
+        ys,
+        r,
+        valid,
+        near,
+        ndist,
+        params.jump,
+        params.jump_rel,
+        params.outlier,
+        params.spread**2,
+        params.min_points,
+    )
+    segments = [
+        Segment(a, b, _ENDS[s], _ENDS[e], c if e == _SONAR else None)
+        for a, b, s, e, c in zip(
+            first.tolist(), last.tolist(), start.tolist(), end.tolist(), cl.tolist(), strict=True
+        )
+    ]
+    return segments, {"too_few_points": too_few}
+
+
+def segment_scan_reference(
+    phi: NDArray[np.float64],
+    r: NDArray[np.float64],
+    params: SegmentParams,
+    sonar_near: NDArray[np.int64] | None = None,
+    sonar_dist: NDArray[np.float64] | None = None,
+) -> tuple[list[Segment], dict[str, int]]:
+    """Grow lines along a scan. ``sonar_near[i]`` is the index of a visible sonar cluster with
+    corners or edges within ``sonar_radius`` of point i, or -1 (None: laser only), and
+    ``sonar_dist[i]`` the distance to it. A line reaching such a cluster ends just before the
+    point nearest to the cluster (the jamb or corner itself), and the next line starts after it.
+
+    Returns the accepted segments and counts of rejected ones by reason. The reference of
+    :func:`segment_scan` (and of the compiled :func:`fgslam.frontend.kernels.grow_lines`).
     """
     n = len(r)
     # plain Python floats: the growing loop is scalar work, and numpy scalars are slow

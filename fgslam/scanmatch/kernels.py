@@ -377,3 +377,203 @@ def icp_loop(
         float(jxy),
         float(jth),
     )
+
+
+def splat_numpy(
+    occ: NDArray[np.int64], off: NDArray[np.int64], val: NDArray[np.uint8], size: int
+) -> NDArray[np.uint8]:
+    """The reference: a flat uint8 grid of ``size`` cells, each cell ``occ[i] + off[t]`` set to
+    the largest ``val[t]`` that reaches it (0 elsewhere): the kernel ``(off, val)`` stamped
+    around every occupied cell, written in order of increasing value."""
+    g = np.zeros(size, dtype=np.uint8)
+    order = np.argsort(val, kind="stable")
+    for o, v in zip(off[order], val[order], strict=True):
+        g[occ + o] = v
+    return g
+
+
+@numba.njit(cache=True, nogil=True)
+def _splat(occ, off, val, size):  # pragma: no cover - compiled
+    g = np.zeros(size, dtype=np.uint8)
+    for c in occ:
+        for t in range(off.shape[0]):
+            i = c + off[t]
+            if i < 0 or i >= size:
+                raise IndexError("splat: a cell outside the grid")
+            if g[i] < val[t]:
+                g[i] = val[t]
+    return g
+
+
+def splat(
+    occ: NDArray[np.int64], off: NDArray[np.int64], val: NDArray[np.uint8], size: int
+) -> NDArray[np.uint8]:
+    """:func:`splat_numpy`, compiled (the same grid, byte for byte; a cell outside raises
+    IndexError)."""
+    return _splat(
+        np.ascontiguousarray(occ, dtype=np.int64),
+        np.ascontiguousarray(off, dtype=np.int64),
+        np.ascontiguousarray(val, dtype=np.uint8),
+        int(size),
+    )
+
+
+@numba.njit(cache=True, nogil=True)
+def _k_nearest(
+    pts, lo, size, ny, nx, keys, starts, order, x, y, radius, k, bd, bj
+):  # pragma: no cover
+    """The ``k`` points nearest to (x, y) closer than ``radius``, nearest first (equal
+    distances: the lower index first), into ``bd`` (squared distances) and ``bj`` (indices);
+    returns how many."""
+    rings = math.ceil(radius / size)
+    r2 = radius * radius
+    fx, fy = (x - lo[0]) / size, (y - lo[1]) / size
+    if not (fx > -rings - 1.0 and fx < nx + rings + 1.0 and fy > -rings - 1.0):
+        return 0
+    if not fy < ny + rings + 1.0:
+        return 0
+    ix, iy = math.floor(fx), math.floor(fy)
+    c = 0
+    for cx in range(max(ix - rings, 0), min(ix + rings, nx - 1) + 1):
+        for cy in range(max(iy - rings, 0), min(iy + rings, ny - 1) + 1):
+            key = cx * ny + cy
+            t = np.searchsorted(keys, key)
+            if t == keys.shape[0] or keys[t] != key:
+                continue
+            for u in range(starts[t], starts[t + 1]):
+                j = order[u]
+                dx, dy = pts[j, 0] - x, pts[j, 1] - y
+                d2 = dx * dx + dy * dy
+                if d2 >= r2:
+                    continue
+                if c == k and (d2 > bd[c - 1] or (d2 == bd[c - 1] and j > bj[c - 1])):
+                    continue
+                # insertion into the sorted buffer, dropping its last when full
+                pos = c if c < k else k - 1
+                while pos > 0 and (d2 < bd[pos - 1] or (d2 == bd[pos - 1] and j < bj[pos - 1])):
+                    if pos < k:
+                        bd[pos], bj[pos] = bd[pos - 1], bj[pos - 1]
+                    pos -= 1
+                bd[pos], bj[pos] = d2, j
+                if c < k:
+                    c += 1
+    return c
+
+
+@numba.njit(cache=True, nogil=True)
+def _local_lines(
+    pts, lo, size, ny, nx, keys, starts, order, k, radius, var_floor
+):  # pragma: no cover
+    n = pts.shape[0]
+    nrm = np.full((n, 2), np.nan)
+    mean = np.empty((n, 2))
+    var = np.zeros(n)
+    bd = np.empty(max(k, 1))
+    bj = np.empty(max(k, 1), dtype=np.int64)
+    for i in range(n):
+        cnt = _k_nearest(
+            pts, lo, size, ny, nx, keys, starts, order, pts[i, 0], pts[i, 1], radius, k, bd, bj
+        )
+        mx = my = 0.0
+        for a in range(cnt):
+            mx += pts[bj[a], 0]
+            my += pts[bj[a], 1]
+        mx /= max(cnt, 1)
+        my /= max(cnt, 1)
+        mean[i, 0], mean[i, 1] = mx, my
+        sxx = syy = sxy = 0.0
+        for a in range(cnt):
+            cx_, cy_ = pts[bj[a], 0] - mx, pts[bj[a], 1] - my
+            sxx += cx_ * cx_
+            syy += cy_ * cy_
+            sxy += cx_ * cy_
+        ang = 0.5 * math.atan2(2 * sxy, sxx - syy)  # direction of the line
+        tr, det = sxx + syy, sxx * syy - sxy * sxy
+        disc = math.sqrt(max(tr * tr / 4 - det, 0.0))
+        lmin, lmax = tr / 2 - disc, tr / 2 + disc
+        if cnt >= 3 and lmin <= 0.04 * lmax and lmax > 0:
+            nrm[i, 0], nrm[i, 1] = -math.sin(ang), math.cos(ang)
+            s2 = max(max(lmin, 0.0) / max(cnt - 2, 1), var_floor)
+            var[i] = s2 / max(lmax, 1e-12)
+    return nrm, mean, var
+
+
+@numba.njit(cache=True, nogil=True)
+def _mark(occ, x, y, origin, res, shape):  # pragma: no cover - compiled
+    fx, fy = (x - origin[0]) / res, (y - origin[1]) / res
+    if not (fx >= 0.0 and fx < shape[0] and fy >= 0.0 and fy < shape[1]):
+        raise IndexError("polyline_cells: a point outside the grid")
+    occ[math.floor(fx) * shape[1] + math.floor(fy)] = True
+
+
+@numba.njit(cache=True, nogil=True)
+def _polyline_cells(
+    pts, lo, size, ny, nx, keys, starts, order, link, steps, origin, res, shape
+):  # pragma: no cover
+    occ = np.zeros(shape[0] * shape[1], dtype=np.bool_)
+    bd = np.empty(3)
+    bj = np.empty(3, dtype=np.int64)
+    n = pts.shape[0]
+    df = 1.0 / steps  # numpy's linspace: f = s * (1 / steps)
+    for i in range(n):
+        ax, ay = pts[i, 0], pts[i, 1]
+        _mark(occ, ax, ay, origin, res, shape)
+        if n < 2 or steps < 2:
+            continue
+        c = _k_nearest(pts, lo, size, ny, nx, keys, starts, order, ax, ay, link, min(3, n), bd, bj)
+        for t in range(1, c):
+            bx, by = pts[bj[t], 0], pts[bj[t], 1]
+            for s in range(1, steps):
+                f = s * df
+                _mark(occ, ax + f * (bx - ax), ay + f * (by - ay), origin, res, shape)
+    return occ
+
+
+def local_lines(
+    c: Cells, k: int, radius: float, var_floor: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Each point's local line from the PCA of its ``k`` nearest points closer than
+    ``radius`` (m, itself included) among ``c``'s points: unit normals (NaN where they are
+    not a line: fewer than 3 points, or the smaller eigenvalue above 4 % of the larger), the
+    neighbours' centroids and the normal angle's variance (rad^2; the scatter across the line
+    per degree of freedom, never below ``var_floor`` (m^2), over the spread along it). The
+    reference: :func:`fgslam.scanmatch.reference._normals_numpy` (cKDTree's k nearest)."""
+    return _local_lines(
+        c.points,
+        c.lo,
+        c.size,
+        c.ny,
+        c.nx,
+        c.keys,
+        c.starts,
+        c.order,
+        int(k),
+        float(radius),
+        float(var_floor),
+    )
+
+
+def polyline_cells(
+    c: Cells, link: float, origin: NDArray[np.float64], res: float, shape: tuple[int, int]
+) -> NDArray[np.int64]:
+    """The cells (flat indices, sorted, of a grid of ``shape`` with cell ``(0, 0)``'s corner at
+    ``origin`` and cells of ``res`` m) of ``c``'s points and of the segments joining each point
+    to its two nearest points closer than ``link`` (m), sampled every ``res / 2`` or finer.
+    The reference: :func:`fgslam.scanmatch.reference._polyline_cells_numpy`."""
+    steps = math.ceil(link / (0.5 * res))
+    occ = _polyline_cells(
+        c.points,
+        c.lo,
+        c.size,
+        c.ny,
+        c.nx,
+        c.keys,
+        c.starts,
+        c.order,
+        float(link),
+        int(steps),
+        np.asarray(origin, dtype=np.float64),
+        float(res),
+        np.array(shape, dtype=np.int64),
+    )
+    return np.flatnonzero(occ)

@@ -67,7 +67,7 @@ def match(
     need = max(params.min_points, 6)
     if len(q) < need:
         return _failed(g, f"too few query points ({len(q)} < {need})", params)
-    if ref.n_points < need or ref.tree is None:
+    if ref.n_points < need:
         return _failed(g, f"too few reference points ({ref.n_points})", params)
     if abs(ref.resolution - params.resolution) > 1e-12:
         params = replace(params, resolution=ref.resolution)

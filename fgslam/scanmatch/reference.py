@@ -12,7 +12,7 @@ from scipy.spatial import cKDTree
 
 from factors.geometry import wrap_angle_half_open
 from fgslam.config.robot import MatchParams
-from fgslam.scanmatch.kernels import Cells, cells
+from fgslam.scanmatch.kernels import Cells, cells, local_lines, polyline_cells, splat
 from fgslam.scanmatch.points import _clean
 
 
@@ -30,7 +30,7 @@ class Reference:
     anchors: NDArray[np.float64]  # (n, 2) a point of each local line (neighbours' centroid)
     normal_var: NDArray[np.float64]  # (n,) variance of each normal's angle (rad^2)
     n_points: int
-    tree: cKDTree | None
+    _tree: cKDTree | None = None
     cells: Cells  # the points binned for ICP's compiled nearest-neighbour queries
     resolution: float
     origin: NDArray[np.float64]  # reference-frame position of cell (0, 0)'s corner
@@ -63,12 +63,13 @@ class Reference:
             self.resolution = max(self.resolution, math.sqrt(area / params.max_cells))
         self._blur = max(_blur(params), self.resolution)
         self.normals = np.full((len(p), 2), np.nan)
-        self.tree = cKDTree(p) if len(p) else None
         self.cells = cells(p, max(params.corr_distance, 0.05))
         self.anchors = p.copy()
         self.normal_var = np.zeros(len(p))
         if len(p) >= 3:
-            self.normals, self.anchors, self.normal_var = _normals(p, self.tree, params)
+            self.normals, self.anchors, self.normal_var = local_lines(
+                self.cells, params.normal_k, params.normal_radius, params.sigma_range**2
+            )
         self._rasterise(p, params)
         self._fans = _fans(raw, origins, len(p), params)
         return self
@@ -84,23 +85,10 @@ class Reference:
         self.origin = lo - reach * res
         shape = tuple(np.floor((p.max(axis=0) - lo) / res).astype(int) + 2 * reach + 1)
         # the reference as a polyline: points joined to their two nearest neighbours
-        dense = [p]
-        if len(p) > 1 and self.tree is not None:
-            d, j = self.tree.query(p, k=min(3, len(p)))
-            steps = math.ceil(params.link_distance / (0.5 * res))
-            f = np.linspace(0.0, 1.0, steps + 1)[1:-1]
-            for c in range(1, d.shape[1]):
-                ok = d[:, c] < params.link_distance
-                a, b = p[ok], p[j[ok, c]]
-                if len(a) and len(f):
-                    seg = a[:, None, :] + f[None, :, None] * (b - a)[:, None, :]
-                    dense.append(seg.reshape(-1, 2))
-        q = np.vstack(dense)
-        ij = np.floor((q - self.origin) / res).astype(np.int64)
-        occ = np.unique(ij[:, 0] * shape[1] + ij[:, 1])
+        occ = polyline_cells(self.cells, params.link_distance, self.origin, res, shape)
         # likelihood exp(-d^2 / 2 s^2) of the distance d (m) from each cell centre to the
         # nearest occupied cell's, cut at 3 s: a kernel splatted around each occupied cell,
-        # written in order of increasing value so that each cell keeps its largest
+        # each cell keeping the largest value that reaches it
         k = np.arange(-reach, reach + 1)
         kx, ky = np.meshgrid(k, k, indexing="ij")
         kd = np.hypot(kx, ky).ravel() * res
@@ -108,11 +96,16 @@ class Reference:
         use = kd <= 3.0 * self._blur
         off = (kx.ravel() * shape[1] + ky.ravel())[use]
         val = val[use]
-        g = np.zeros(shape[0] * shape[1], dtype=np.uint8)
         q8 = np.round(255.0 * val).astype(np.uint8)
-        for o, v in zip(off[np.argsort(val)], np.sort(q8), strict=True):
-            g[occ + o] = v
-        self.grid = g.reshape(shape)
+        self.grid = splat(occ, off, q8, shape[0] * shape[1]).reshape(shape)
+
+    @property
+    def tree(self) -> cKDTree | None:
+        """A cKDTree of the points (None without points), built on first use: the numpy
+        references of the compiled kernels query it; the matcher itself does not."""
+        if self._tree is None and self.n_points:
+            self._tree = cKDTree(self.points)
+        return self._tree
 
     def covered(
         self, points: ArrayLike, margin_theta: float = 0.0, margin_xy: float = 0.0
@@ -175,8 +168,11 @@ def _fans(
     return out
 
 
-def _normals(p: NDArray, tree: cKDTree, params: MatchParams) -> tuple[NDArray, NDArray, NDArray]:
-    """Local lines: unit normals from the PCA of each point's neighbours (NaN where they are
+def _normals_numpy(
+    p: NDArray, tree: cKDTree, params: MatchParams
+) -> tuple[NDArray, NDArray, NDArray]:
+    """The reference of :func:`fgslam.scanmatch.kernels.local_lines` (which the build uses).
+    Local lines: unit normals from the PCA of each point's neighbours (NaN where they are
     not a line), the neighbours' centroids (a point of the line) and the variance of the
     normal's angle (rad^2: scatter across the line / (k - 2) over the spread along it)."""
     k = min(params.normal_k, len(p))
@@ -204,3 +200,23 @@ def _normals(p: NDArray, tree: cKDTree, params: MatchParams) -> tuple[NDArray, N
     s2 = np.maximum(np.maximum(lmin, 0.0) / np.maximum(cnt - 2, 1), params.sigma_range**2)
     var = np.where(line, s2 / np.maximum(lmax, 1e-12), 0)
     return n, mean, var
+
+
+def _polyline_cells_numpy(
+    p: NDArray, tree: cKDTree, link: float, origin: NDArray, res: float, shape: tuple[int, int]
+) -> NDArray:
+    """The reference of :func:`fgslam.scanmatch.kernels.polyline_cells`."""
+    dense = [p]
+    if len(p) > 1:
+        d, j = tree.query(p, k=min(3, len(p)))
+        steps = math.ceil(link / (0.5 * res))
+        f = np.linspace(0.0, 1.0, steps + 1)[1:-1]
+        for c in range(1, d.shape[1]):
+            ok = d[:, c] < link
+            a, b = p[ok], p[j[ok, c]]
+            if len(a) and len(f):
+                seg = a[:, None, :] + f[None, :, None] * (b - a)[:, None, :]
+                dense.append(seg.reshape(-1, 2))
+    q = np.vstack(dense)
+    ij = np.floor((q - origin) / res).astype(np.int64)
+    return np.unique(ij[:, 0] * shape[1] + ij[:, 1])
