@@ -47,34 +47,28 @@ def test_an_index_outside_the_grid_is_refused(shift):
             gather_sums_numpy(flat, base.copy(), r, off)
 
 
-def test_a_search_scores_the_same_with_the_reference(monkeypatch):
-    """A correlative search over a simulated corridor scan gives the same response surface
-    with the compiled kernel and with the numpy reference."""
-    from fgslam.config import load_config
-    from fgslam.scanmatch import MatchParams, Reference, scan_points
+@pytest.mark.parametrize("seed", range(12))
+def test_the_search_responds_as_the_reference(seed):
+    """The compiled branch and bound keeps the numpy reference's candidates, in its order,
+    with its scores, also when the candidate cap truncates them; the best is near the truth."""
+    from dataclasses import replace
+
+    from factors.geometry import wrap_angle
     from fgslam.scanmatch import search as search_mod
-    from fgslam.sim.raycast import raycast
 
-    box = [(0, 0, 8, 0), (8, 0, 8, 5), (8, 5, 0, 5), (0, 5, 0, 0), (3, 2.5, 3.5, 3.0)]
-    segs = np.asarray(box, dtype=float)
-    cfg = load_config()
-    bearings = cfg.laser.bearings
-    rng = np.random.default_rng(0)
-
-    def scan(pose):
-        r = raycast(pose[:2], pose[2] + bearings, segs)
-        return scan_points(r + rng.normal(0, 0.01, r.shape), bearings, max_range=20.0)
-
-    params = MatchParams.from_config(cfg)
-    ref = Reference.build(scan((2.0, 2.0, 0.1)), params)
-    q = scan((2.2, 2.1, 0.15))
-    guess = np.array([0.15, 0.05, 0.04])
-    compiled = search_mod._search(ref, q, guess, params)
-    monkeypatch.setattr(search_mod, "gather_sums", gather_sums_numpy)
-    reference = search_mod._search(ref, q, guess, params)
-    np.testing.assert_array_equal(compiled.poses, reference.poses)
-    np.testing.assert_array_equal(compiled.scores, reference.scores)
-    assert compiled.best == reference.best and len(compiled.scores) > 0
+    ref, q, truth, params, rng = _box_scans(700 + seed)
+    if seed % 3 == 2:
+        params = replace(params, max_candidates=int(rng.integers(1, 20)))
+    guess = truth + np.array([*rng.uniform(-0.1, 0.1, 2), rng.uniform(-0.05, 0.05)])
+    got = search_mod._search(ref, q, guess, params)
+    want = search_mod._search_numpy(ref, q, guess, params)
+    np.testing.assert_array_equal(got.poses, want.poses)
+    np.testing.assert_array_equal(got.scores, want.scores)
+    assert (got.best, got.n, got.step) == (want.best, want.n, want.step)
+    assert len(got.scores) > 0
+    best = got.poses[got.best]
+    assert np.hypot(*(best[:2] - truth[:2])) < 0.06
+    assert abs(wrap_angle(best[2] - truth[2])) < 0.03
 
 
 @pytest.mark.parametrize("seed", range(20))

@@ -577,3 +577,122 @@ def polyline_cells(
         np.array(shape, dtype=np.int64),
     )
     return np.flatnonzero(occ)
+
+
+@numba.njit(cache=True, nogil=True)
+def _scores(flat, base, cr, cx, cy, ny, denom):  # pragma: no cover - compiled
+    out = np.empty(cr.shape[0])
+    size = flat.shape[0]
+    n = base.shape[1]
+    for k in range(cr.shape[0]):
+        o = cx[k] * ny + cy[k]
+        row = cr[k]
+        s = 0
+        for j in range(n):
+            i = base[row, j] + o
+            if i < 0 or i >= size:
+                raise IndexError("branch_and_bound: a cell index outside the likelihood level")
+            s += flat[i]
+        out[k] = np.uint32(s) / denom
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _children(cr, cx, cy, w, n):  # pragma: no cover - compiled
+    """The four sub-blocks of each block, in the reference's order (all first quarters,
+    then all second ...), those starting beyond the window (> n) left out."""
+    m = cr.shape[0]
+    rr = np.empty(4 * m, dtype=np.int64)
+    xx = np.empty(4 * m, dtype=np.int64)
+    yy = np.empty(4 * m, dtype=np.int64)
+    c = 0
+    for part in range(4):
+        ox = w if part in (1, 3) else 0
+        oy = w if part >= 2 else 0
+        for k in range(m):
+            x, y = cx[k] + ox, cy[k] + oy
+            if x <= n and y <= n:
+                rr[c], xx[c], yy[c] = cr[k], x, y
+                c += 1
+    return rr[:c], xx[:c], yy[:c]
+
+
+@numba.njit(cache=True, nogil=True)
+def _branch_and_bound(levels, base, nrot, n, top, ny, npts, margin, max_cand):  # pragma: no cover
+    denom = 255.0 * npts
+    nlev = levels.shape[0] - 1
+    w = top
+    starts = np.arange(-n, n + 1, w)
+    ns = starts.shape[0]
+    cr = np.empty(nrot * ns * ns, dtype=np.int64)
+    cx = np.empty(nrot * ns * ns, dtype=np.int64)
+    cy = np.empty(nrot * ns * ns, dtype=np.int64)
+    k = 0
+    for r in range(nrot):
+        for a in range(ns):
+            for b in range(ns):
+                cr[k], cx[k], cy[k] = r, starts[a], starts[b]
+                k += 1
+    bound = _scores(levels[nlev], base, cr, cx, cy, ny, denom)
+    lower = 0.0
+    order = np.argsort(-bound, kind="mergesort")
+    for t in range(min(4, order.shape[0])):
+        i = order[t]
+        r1, x1, y1 = cr[i : i + 1].copy(), cx[i : i + 1].copy(), cy[i : i + 1].copy()
+        lev, ww = nlev, w
+        while lev > 0:
+            ww //= 2
+            lev -= 1
+            rr, xx, yy = _children(r1, x1, y1, ww, n)
+            b = _scores(levels[lev], base, rr, xx, yy, ny, denom)
+            j = np.argmax(b)
+            r1, x1, y1 = rr[j : j + 1], xx[j : j + 1], yy[j : j + 1]
+        lower = max(lower, _scores(levels[0], base, r1, x1, y1, ny, denom)[0])
+    lev = nlev
+    while True:
+        keep = bound >= lower - margin
+        if keep.sum() > max_cand:
+            keep[:] = False
+            order = np.argsort(-bound, kind="mergesort")
+            for t in range(max_cand):
+                keep[order[t]] = True
+        cr, cx, cy, bound = cr[keep], cx[keep], cy[keep], bound[keep]
+        if lev == 0:
+            break
+        w //= 2
+        lev -= 1
+        cr, cx, cy = _children(cr, cx, cy, w, n)
+        bound = _scores(levels[lev], base, cr, cx, cy, ny, denom)
+        if lev == 0 and bound.shape[0]:
+            lower = max(lower, bound.max())
+    return cr, cx, cy, bound
+
+
+def branch_and_bound(
+    levels: NDArray[np.uint8],
+    base: NDArray[np.int64],
+    nrot: int,
+    n: int,
+    top: int,
+    ny: int,
+    npts: int,
+    margin: float,
+    max_candidates: int,
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]:
+    """The correlative search's branch and bound (:func:`fgslam.scanmatch.search._search_numpy`
+    is the reference; the same candidates in the same order and the same scores): ``levels``
+    (L, cells) the likelihood max-pooled over 1, 2, .., ``top`` cells, raveled with rows of
+    ``ny``; ``base`` (R, N) each query point's cell at each of the ``nrot`` rotations;
+    translations -n .. n cells. Returns the kept candidates' rotation index, x and y offsets
+    (cells) and scores (mean likelihood in [0, 1])."""
+    return _branch_and_bound(
+        np.ascontiguousarray(levels, dtype=np.uint8),
+        np.ascontiguousarray(base, dtype=np.int64),
+        int(nrot),
+        int(n),
+        int(top),
+        int(ny),
+        int(npts),
+        float(margin),
+        int(max_candidates),
+    )

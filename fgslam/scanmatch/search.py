@@ -12,7 +12,7 @@ from numpy.typing import NDArray
 
 from factors.geometry import rot
 from fgslam.config.robot import MatchParams
-from fgslam.scanmatch.kernels import gather_sums
+from fgslam.scanmatch.kernels import branch_and_bound, gather_sums_numpy
 from fgslam.scanmatch.reference import Reference
 
 
@@ -25,7 +25,24 @@ class _Response:
     step: float  # rotation step (rad)
 
 
-def _search(ref: Reference, q: NDArray, guess: NDArray, params: MatchParams) -> _Response:
+@dataclass
+class _Window:
+    """A search prepared: the rotations (rad), every query point's cell at every rotation
+    (``base``, (R, N) flat indices into the pooled levels, translation = the guess), the
+    levels (L, cells) max-pooled over 1, 2, .. ``top`` cells, the crop's row length ``ny``,
+    the half-width ``n`` of the translation window (cells) and the rotation step (rad)."""
+
+    rots: NDArray
+    base: NDArray
+    levels: NDArray
+    ny: int
+    npts: int
+    n: int
+    top: int
+    step: float
+
+
+def _window(ref: Reference, q: NDArray, guess: NDArray, params: MatchParams) -> _Window:
     res = ref.resolution
     n = math.ceil(params.search_xy / res)
     top = _top_block(params, n)
@@ -45,23 +62,66 @@ def _search(ref: Reference, q: NDArray, guess: NDArray, params: MatchParams) -> 
     ix = np.floor((px - ref.origin[0]) / res).astype(np.int64)
     iy = np.floor((py - ref.origin[1]) / res).astype(np.int64)
     flats, base, ny = _pyramid(ref, ix, iy, n, top)
-    npts = q.shape[0]
+    return _Window(rots, base, np.stack(flats), ny, q.shape[0], n, top, step)
+
+
+def _margin(params: MatchParams, npts: int) -> float:
+    """Candidates kept: within mode_nats (the response) or basin_nats (ICP starts) of the
+    best, at gain 1, as a score difference."""
+    nats = max(params.mode_nats, params.basin_nats if params.max_basins > 1 else 0.0)
+    return nats / max(npts, 1)
+
+
+def _response(win: _Window, guess: NDArray, res: float, cand: tuple, bound: NDArray) -> _Response:
+    r, x, y = cand
+    poses = np.column_stack([guess[0] + x * res, guess[1] + y * res, win.rots[r]])
+    best = int(np.argmax(bound)) if len(bound) else -1
+    return _Response(poses, bound, best, win.npts, win.step)
+
+
+def _search(ref: Reference, q: NDArray, guess: NDArray, params: MatchParams) -> _Response:
+    """The correlative search of ``q`` ((N, 2), query frame, m) around ``guess`` (T_ref_query)
+    with its branch and bound compiled (:func:`fgslam.scanmatch.kernels.branch_and_bound`;
+    the same response as :func:`_search_numpy`)."""
+    win = _window(ref, q, guess, params)
+    *cand, bound = branch_and_bound(
+        win.levels,
+        win.base,
+        len(win.rots),
+        win.n,
+        win.top,
+        win.ny,
+        win.npts,
+        _margin(params, win.npts),
+        params.max_candidates,
+    )
+    return _response(win, guess, ref.resolution, tuple(cand), bound)
+
+
+def _search_numpy(ref: Reference, q: NDArray, guess: NDArray, params: MatchParams) -> _Response:
+    """The reference of :func:`_search`: the branch and bound in numpy. Every rotation of the
+    window; the translations by blocks of ``top`` cells, each block's bound its best cell's
+    score on the max-pooled level; a lower bound from a greedy descent of the best four
+    blocks; blocks split in four while their bound reaches the lower bound less the margin
+    (at most ``max_candidates`` kept). Sorts are stable: ties keep the candidates' order."""
+    win = _window(ref, q, guess, params)
+    base, ny, npts, n = win.base, win.ny, win.npts, win.n
+    flats = win.levels
 
     def evaluate(level: int, r: NDArray, dx: NDArray, dy: NDArray) -> NDArray:
-        # the hot loop, compiled (fgslam.scanmatch.kernels); sums of uint8 fit uint32 for any
-        # scan (exact)
-        return gather_sums(flats[level], base, r, dx * ny + dy) / (255.0 * npts)
+        # sums of uint8 fit uint32 for any scan (exact)
+        return gather_sums_numpy(flats[level], base, r, dx * ny + dy) / (255.0 * npts)
 
     # top level: every rotation x every block
     nlev = len(flats) - 1
-    w = top
+    w = win.top
     starts = np.arange(-n, n + 1, w)
-    rr, bx, by = np.meshgrid(np.arange(len(rots)), starts, starts, indexing="ij")
+    rr, bx, by = np.meshgrid(np.arange(len(win.rots)), starts, starts, indexing="ij")
     cand = [rr.ravel(), bx.ravel(), by.ravel()]
     bound = evaluate(nlev, *cand)
     # a lower bound: greedy descent from the best few blocks
     lower = 0.0
-    for k in np.argsort(-bound)[:4]:
+    for k in np.argsort(-bound, kind="stable")[:4]:
         r, x, y = cand[0][k : k + 1], cand[1][k : k + 1], cand[2][k : k + 1]
         lev, ww = nlev, w
         while lev > 0:
@@ -76,16 +136,14 @@ def _search(ref: Reference, q: NDArray, guess: NDArray, params: MatchParams) -> 
             j = int(np.argmax(b))
             r, x, y = cr[j : j + 1], cx[j : j + 1], cy[j : j + 1]
         lower = max(lower, float(evaluate(0, r, x, y)[0]))
-    # kept: within mode_nats (the response) or basin_nats (ICP starts) at gain 1
-    nats = max(params.mode_nats, params.basin_nats if params.max_basins > 1 else 0.0)
-    margin_score = nats / max(npts, 1)
+    margin_score = _margin(params, npts)
     lev = nlev
     while True:
         thr = lower - margin_score
         keep = bound >= thr
         if keep.sum() > params.max_candidates:
             keep = np.zeros_like(keep)
-            keep[np.argsort(-bound)[: params.max_candidates]] = True
+            keep[np.argsort(-bound, kind="stable")[: params.max_candidates]] = True
         cand = [c_[keep] for c_ in cand]
         bound = bound[keep]
         if lev == 0:
@@ -101,10 +159,7 @@ def _search(ref: Reference, q: NDArray, guess: NDArray, params: MatchParams) -> 
         bound = evaluate(lev, *cand)
         if lev == 0 and len(bound):
             lower = max(lower, float(bound.max()))
-    r, x, y = cand
-    poses = np.column_stack([guess[0] + x * res, guess[1] + y * res, rots[r]])
-    best = int(np.argmax(bound)) if len(bound) else -1
-    return _Response(poses, bound, best, npts, step)
+    return _response(win, guess, ref.resolution, tuple(cand), bound)
 
 
 def _top_block(params: MatchParams, n: int) -> int:
