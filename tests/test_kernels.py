@@ -277,3 +277,15 @@ def test_a_point_outside_the_polyline_grid_is_refused():
     p = np.array([[0.0, 0.0], [1.0, 0.0]])
     with pytest.raises(IndexError):
         polyline_cells(cells(p, 0.3), 0.3, np.array([0.5, 0.0]), 0.1, (20, 5))
+
+
+@pytest.mark.parametrize("seed", range(15))
+def test_max_pool_equals_the_reference(seed):
+    from fgslam.scanmatch.kernels import max_pool, max_pool_numpy
+
+    rng = np.random.default_rng(800 + seed)
+    a = rng.integers(0, 256, (int(rng.integers(1, 90)), int(rng.integers(1, 90)))).astype(np.uint8)
+    top = int(2 ** rng.integers(0, 7))
+    got, want = max_pool(a, top), max_pool_numpy(a, top)
+    assert got.shape == want.shape == (1 + int(np.log2(top)), *a.shape)
+    np.testing.assert_array_equal(got, want)

@@ -12,7 +12,7 @@ from numpy.typing import NDArray
 
 from factors.geometry import rot
 from fgslam.config.robot import MatchParams
-from fgslam.scanmatch.kernels import branch_and_bound, gather_sums_numpy
+from fgslam.scanmatch.kernels import branch_and_bound, gather_sums_numpy, max_pool
 from fgslam.scanmatch.reference import Reference
 
 
@@ -61,8 +61,8 @@ def _window(ref: Reference, q: NDArray, guess: NDArray, params: MatchParams) -> 
     py = s[:, None] * q[None, :, 0] + c[:, None] * q[None, :, 1] + guess[1]
     ix = np.floor((px - ref.origin[0]) / res).astype(np.int64)
     iy = np.floor((py - ref.origin[1]) / res).astype(np.int64)
-    flats, base, ny = _pyramid(ref, ix, iy, n, top)
-    return _Window(rots, base, np.stack(flats), ny, q.shape[0], n, top, step)
+    levels, base, ny = _pyramid(ref, ix, iy, n, top)
+    return _Window(rots, base, levels, ny, q.shape[0], n, top, step)
 
 
 def _margin(params: MatchParams, npts: int) -> float:
@@ -171,7 +171,7 @@ def _top_block(params: MatchParams, n: int) -> int:
 
 def _pyramid(
     ref: Reference, ix: NDArray[np.int64], iy: NDArray[np.int64], n: int, top: int
-) -> tuple[list[NDArray[np.uint8]], NDArray[np.int64], int]:
+) -> tuple[NDArray[np.uint8], NDArray[np.int64], int]:
     """``ref``'s grid max-pooled over 1, 2, 4, .., ``top`` cells (level l: max of
     grid[i:i+2^l, j:j+2^l]), raveled, over the part of the grid that query points (grid
     cells ``ix``, ``iy``) reach at offsets -n .. n + top, and each point's index into them.
@@ -194,18 +194,4 @@ def _pyramid(
     hits &= (ix - n > x0) & (ix + n + 2 * top < x1) & (iy - n > y0) & (iy + n + 2 * top < y1)
     nowhere = (x1 - x0 + tail // 2) * ny + ny // 2
     base = np.where(hits, (ix - x0) * ny + (iy - y0), nowhere)
-    return [lv.ravel() for lv in _pool(crop, top, np.maximum)], base, ny
-
-
-def _pool(a: NDArray, top: int, op: np.ufunc) -> list[NDArray]:
-    """Level l: op over a[i:i+2^l, j:j+2^l] (cells beyond the edge left out), up to top."""
-    levels = [a]
-    w = 1
-    while w < top:
-        m = levels[-1]
-        nxt = m.copy()
-        nxt[:-w, :] = op(m[:-w, :], m[w:, :])
-        nxt[:, :-w] = op(nxt[:, :-w], nxt[:, w:])
-        levels.append(nxt)
-        w *= 2
-    return levels
+    return max_pool(crop, top).reshape(-1, crop.size), base, ny

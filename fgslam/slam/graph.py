@@ -144,6 +144,10 @@ class GraphBackend(GraphGuard, Backend):
         self._touched: set[int] = set()
         self._loop_added = False
         self._prev = gtsam.Pose2()
+        # iSAM2's pose estimates read since its last update, by (key, update count): the
+        # same numbers as asking iSAM2 again (it changes only when updated, in commit)
+        self._solves = 0
+        self._poses: dict[tuple[int, int], gtsam.Pose2] = {}
 
     # ------------------------------------------------------------------ keyframes
 
@@ -170,7 +174,7 @@ class GraphBackend(GraphGuard, Backend):
         """A new pose linked to the last one by the wheel odometry ``pre`` and/or the scan
         match ``scan``: one between factor each; with both, each carries the robust kernel
         (they check each other, the landmarks arbitrate); one alone is Gaussian."""
-        prev = self._prev = self.isam.calculateEstimatePose2(X(self.k))
+        prev = self._prev = self._pose_estimate(X(self.k))
         self.k += 1
         self.times.append(t)
         motions = [m for m in (pre, scan) if m is not None]
@@ -233,8 +237,8 @@ class GraphBackend(GraphGuard, Backend):
         GTSAM's between convention (tangent at the relative pose): from the joint marginal of
         X(j) and the last committed pose, propagated through the new keyframe's motion."""
         kp = self.k - 1
-        A = self.isam.calculateEstimatePose2(X(j))
-        B = self.isam.calculateEstimatePose2(X(kp))
+        A = self._pose_estimate(X(j))
+        B = self._pose_estimate(X(kp))
         r = A.between(B)
         d = self._pre.delta
         if j == kp:
@@ -356,7 +360,17 @@ class GraphBackend(GraphGuard, Backend):
         noise = models.noise_model(np.eye(kind.dim) * self.merge_sigma**2, self.robust)
         self.new_graph.add(kind.equality(L(keep), L(drop), noise))
 
+    def _pose_estimate(self, key: int) -> gtsam.Pose2:
+        """iSAM2's current estimate of pose ``key``, read once per update."""
+        p = self._poses.get((key, self._solves))
+        if p is None:
+            if len(self._poses) > 64:
+                self._poses.clear()
+            p = self._poses[(key, self._solves)] = self.isam.calculateEstimatePose2(key)
+        return p
+
     def commit(self) -> None:
+        self._solves += 1
         self._update_guarded()
         self.graph.push_back(self.new_graph)
         # start a new empty graph: re-adding factors would silently double information
@@ -375,7 +389,7 @@ class GraphBackend(GraphGuard, Backend):
             for lid in self._touched:
                 self._means[lid] = self._mean(lid, fresh=True)
         self._touched = set()
-        p = self.isam.calculateEstimatePose2(X(self.k))
+        p = self._pose_estimate(X(self.k))
         self._pose_pred = np.array([p.x(), p.y(), p.theta()])
         if self.cal is not None:
             self._c = np.asarray(self.isam.calculateEstimateVector(C), dtype=float)
