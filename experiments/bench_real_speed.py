@@ -1,21 +1,27 @@
-"""CPU cost of laser-only SLAM on the real logs end to end (issue 14's speed targets: MIT CSAIL
-at least 10x faster than real time, Freiburg 079 at least 5x), optionally side by side with
-another revision of the code.
+"""CPU cost of laser-only SLAM on the real logs end to end, its latency per keyframe and its
+accuracy, optionally side by side with another revision of the code (issue 33's targets: MIT
+CSAIL, the Intel bag and Freiburg 079 at least 40x faster than real time, the corridor 60x
+with a p95 keyframe latency of 10 ms, peak memory under 500 MiB, relations error within 2 %).
 
-Run: python experiments/bench_real_speed.py [--logs mit-csail freiburg-079 intel corridor]
+Run: python experiments/bench_real_speed.py
+       [--logs mit-csail freiburg-079 intel intel-bag corridor]
        [--backends isam2] [--max-scans N] [--compare REV] [--repeat N] [--profile | --split]
-(``corridor``: the simulated corridor of seed 1, simulated first and not timed, fused sensors;
-issue 18's corridor target.)
+(``corridor``: the simulated corridor of seed 1, simulated first and not timed, fused sensors.)
 Each run is a child process (``PYTHONPATH`` = the tree under test) that reads
 ``../shared/data/<log>``, runs :func:`fgslam.slam.runner.run_backends` with the scan-matching
 defaults (``experiments/real_relations.py``'s "scan" mode: scan and wheel odometry, keyframes
 by motion, loop closures on) and reports its process CPU time, its wall time, the CPU time
 spent in loop-closure search (:meth:`fgslam.slam.loops.LoopCloser.try_close`), the loop
-attempts and the accepted closures. ``--compare REV`` checks REV out into a temporary git
-worktree and runs it alternately with this tree (REV first), so that both share the
-machine's load; on a shared machine compare CPU seconds, not wall seconds. The real-time
-factor is log seconds / CPU seconds; the peak RSS is the child's whole process (Python,
-numpy, GTSAM and the run). Prints one markdown row per run. ``--profile`` runs each
+attempts and the accepted closures, the 95th percentile of the CPU time of the events that
+completed a keyframe (``SlamPipeline.add``: the latency of an online run), and the relations
+error of the every-scan trajectory where the log has relations (CARMEN logs: the benchmark's
+method, :func:`fgslam.evaluation.dense.relations_error_chain`; the bag: interpolated). Before
+the timed runs, each tree runs 40 scans untimed so that numba's kernels load from its disk
+cache (``bench_kernels.py`` shows the cold and warm first calls). ``--compare REV`` checks REV
+out into a temporary git worktree and runs it alternately with this tree (REV first), so that
+both share the machine's load; on a shared machine compare CPU seconds, not wall seconds. The
+real-time factor is log seconds / CPU seconds; the peak RSS is the child's whole process
+(Python, numpy, GTSAM and the run). Prints one markdown row per run. ``--profile`` runs each
 child under cProfile with the process-time clock (the profiler inflates Python-heavy parts:
 read the shares; the table's CPU then includes it) and prints, after the table, where the CPU
 went (:func:`split`). ``--split`` instead times the main stages with the process-time clock
@@ -36,12 +42,21 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / ".." / "shared" / "data"
 FILES = {
     "intel": "intel-corrected.log.gz",
     "freiburg-079": "freiburg-079-corrected.log.gz",
     "mit-csail": "mit-csail.clf",
+    "intel-bag": "intel.orig.bag",
+}
+RELATIONS = {
+    "intel": "intel-corrected.relations",
+    "freiburg-079": "freiburg-079-corrected.relations",
+    "mit-csail": "mit-csail.relations",
+    "intel-bag": "intel.orig.relations",
 }
 SCAN = {"odometry": "both", "keyframes": "motion", "loop_closures": "on"}
 
@@ -200,6 +215,20 @@ def child(
 
     loops.LoopCloser.try_close = timed
     spent = timers() if split_ else {}
+    # CPU of each event that completed a keyframe: an online run's latency per keyframe
+    from fgslam.slam.runner import SlamPipeline
+
+    latency: list[float] = []
+    add = SlamPipeline.add
+
+    def add_timed(self, ev):
+        t0 = time.process_time()
+        n = add(self, ev)
+        if n:
+            latency.append(time.process_time() - t0)
+        return n
+
+    SlamPipeline.add = add_timed
 
     sensors = "laser"
     if log == "corridor":  # the simulated corridor (seed 1), fused, the default pipeline
@@ -224,6 +253,7 @@ def child(
         prof.disable()
     cpu, wall = time.process_time() - c0, time.perf_counter() - w0
     res = results[0]
+    rel = relations(log, res) if log in RELATIONS and max_scans is None else None
     where = {}
     if prof is not None:
         import pstats
@@ -244,10 +274,30 @@ def child(
             res.stats.get("loop_maps_built", res.stats.get("loop_closures_tried", 0))
         ),
         "profile": where,
+        "p95_keyframe_ms": 1e3 * float(np.percentile(latency, 95)) if latency else float("nan"),
+        "relations": rel,
         "split": spent,
         # peak resident memory of the whole child process (Linux: ru_maxrss in KiB)
         "max_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
     }
+
+
+def relations(log: str, res) -> tuple[float, float]:
+    """Relations error (translational m, rotational deg, means) of ``res``'s every-scan
+    trajectory on ``log``."""
+    from fgslam.evaluation import dense
+
+    rel = dense.read_relations(DATA / RELATIONS[log])
+    t, poses = res.every_scan
+    if FILES[log].endswith(".bag"):
+        m = dense.relations_error(rel, t, poses)
+    else:
+        from fgslam.io.readers.carmen import odometry_chain
+
+        chain = odometry_chain(DATA / FILES[log])
+        est, has = dense.estimate_at_scans(chain, t, poses)
+        m = dense.relations_error_chain(rel, chain, est, has)
+    return float(m["trans_mean"]), float(m["rot_mean_deg"])
 
 
 def run_child(
@@ -288,10 +338,12 @@ def revision(tree: Path) -> str:
 
 def row(label: str, r: dict) -> str:
     rt = r["log_s"] / r["cpu_s"] if r["cpu_s"] else float("nan")
+    rel = "{:.4f} / {:.3f}".format(*r["relations"]) if r.get("relations") else "-"
     return (
         f"| {r['log']} | {r['backends']} | {label} | {r['log_s']:.0f} | {r['cpu_s']:.1f} | "
         f"{r['wall_s']:.1f} | {rt:.1f}x | {r['loop_cpu_s']:.1f} | {r['attempts']} | "
-        f"{r['accepted']} | {r['keyframes']} | {r.get('max_rss_mib', float('nan')):.0f} |"
+        f"{r['accepted']} | {r['keyframes']} | {r.get('max_rss_mib', float('nan')):.0f} | "
+        f"{r.get('p95_keyframe_ms', float('nan')):.1f} | {rel} |"
     )
 
 
@@ -361,9 +413,10 @@ def main() -> None:
         try:
             print(
                 "| log | backend | code | log (s) | CPU (s) | wall (s) | real time / CPU | "
-                "loop search CPU (s) | loop attempts | accepted | keyframes | peak RSS (MiB) |"
+                "loop search CPU (s) | loop attempts | accepted | keyframes | peak RSS (MiB) | "
+                "p95 keyframe CPU (ms) | relations m / deg |"
             )
-            print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+            print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
             profiles = []
             # numba compiles a kernel on its first call and caches it on disk beside the
             # code: a short untimed run per tree first, so that every timed run loads the

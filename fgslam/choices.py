@@ -15,6 +15,8 @@ CORNER_CHOICES = ("with-lines", "replace-lines", "off")
 POINTS_FROM_CHOICES = ("any-echo", "unfused-echoes")
 SONAR_TIMING_CHOICES = ("scan-frame", "own-time")
 SONAR_CALIBRATION_CHOICES = ("off", "sound")
+ROBUST_CHOICES = ("none", "huber", "cauchy", "dcs")  # factors.noise.ROBUST_KERNELS
+FACTORIZATION_CHOICES = ("QR", "CHOLESKY")
 
 # (section, key) -> choices
 CHOICES = {
@@ -25,4 +27,6 @@ CHOICES = {
     ("sonar", "calibration"): SONAR_CALIBRATION_CHOICES,
     ("odometry", "calibration"): CALIBRATION_CHOICES,
     ("laser", "calibration"): LASER_CALIBRATION_CHOICES,
+    ("graph", "robust"): ROBUST_CHOICES,
+    ("graph", "factorization"): FACTORIZATION_CHOICES,
 }

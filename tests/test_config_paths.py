@@ -17,6 +17,7 @@ from fgslam.config.load import _CHOICES
 from fgslam.config.robot import (
     AssociationParams,
     FrontEndParams,
+    GraphParams,
     KeyframeParams,
     LoopParams,
     MapParams,
@@ -35,6 +36,7 @@ SECTIONS = [
     ("loops", LoopParams, LoopParams.from_config),
     ("association", AssociationParams, AssociationParams.from_config),
     ("map", MapParams, MapParams.from_config),
+    ("graph", GraphParams, GraphParams.from_config),
 ]
 
 
@@ -169,6 +171,7 @@ def test_the_components_defaults_are_written_once():
     assert KeyframeParams.from_config(cfg) == KeyframeParams()
     assert LoopParams.from_config(cfg) == LoopParams()
     assert AssociationParams.from_config(cfg) == AssociationParams()
+    assert GraphParams.from_config(cfg) == GraphParams()
     assert MapParams().association_params() == AssociationParams()
     assert SegmentParams.from_config(cfg) == SegmentParams()
     # the shipped laser estimates its range offset; the class's default is a header's without
@@ -339,3 +342,29 @@ def test_the_shipped_tuning_sections_repeat_no_other_default():
     for name, cls in (("frontend", c.FrontendConfig), ("scanmatch", c.ScanMatchConfig)):
         defaults = {f.name: f.default for f in c.keys(cls)}
         assert {k: defaults[k] for k in shipped[name]} == shipped[name]
+
+
+@pytest.mark.parametrize("name", [f.name for f in c.keys(GraphParams)])
+def test_every_graph_key_reaches_the_isam2_backend(tmp_path, name):
+    """A ``[graph]`` key set in a TOML file arrives in the iSAM2 backend the runner builds
+    (its own attribute, or iSAM2's parameters for the relinearisation and factorisation)."""
+    from fgslam.slam.runner import make_backend
+
+    key = f"graph.{name}"
+    value = _other(getattr(GraphParams(), name), key)
+    be = make_backend("isam2", _load(tmp_path, _toml(key, value)))
+    got = {
+        "relinearize_skip": lambda: be._params.relinearizeSkip,
+        "factorization": lambda: str(be._params.getFactorization()),
+        "relinearize_threshold": lambda: be._relinearize_threshold,
+    }.get(name, lambda: getattr(be, name))()
+    assert got == value
+
+
+def test_the_robust_kernels_are_listed_once():
+    """The configuration's choices of kernel are the noise models' (factors cannot import
+    fgslam, so the tuple is written in both places; this keeps them one list)."""
+    from factors.noise import ROBUST_KERNELS
+    from fgslam.choices import ROBUST_CHOICES
+
+    assert ROBUST_CHOICES == ROBUST_KERNELS

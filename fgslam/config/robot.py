@@ -495,12 +495,35 @@ def _matcher(cfg: RobotConfig) -> MatchParams:
 
 
 @dataclass(frozen=True)
+class GraphParams:
+    """The factor graph's solver (:class:`fgslam.slam.graph.GraphBackend`): iSAM2's
+    relinearisation, the estimate refreshes and the final convergence; ``[graph]``."""
+
+    robust: str = param("cauchy", "choice", "landmark and merge factors' M-estimator")
+    merge_sigma: float = param(0.01, "m|rad", "a merge's tie between one landmark's variables")
+    relinearize_threshold: float = param(
+        0.1, "m|rad", "iSAM2 relinearises variables whose step exceeds this"
+    )
+    relinearize_skip: int = param(10, "count", "iSAM2 updates between relinearisation checks")
+    refresh_every: int = param(10, "count", "keyframes between refreshes of the whole estimate")
+    loop_updates: int = param(2, "count", "extra iSAM2 updates after a loop closure")
+    max_final_updates: int = param(20, "count", "final Gauss-Newton steps at most")
+    converge_tol: float = param(0.01, "m|rad", "the final steps stop when none moves more")
+    factorization: str = param("QR", "choice", "QR or CHOLESKY (faster, may refuse sound systems)")
+
+    @classmethod
+    def from_config(cls, cfg: RobotConfig) -> GraphParams:
+        """The ``[graph]`` section of ``cfg``."""
+        return cfg.graph
+
+
+@dataclass(frozen=True)
 class RobotInfo:
     name: str = param(unit="text", doc="the robot's name")
 
 
 # the components' sections of RobotConfig, in the order of the pipeline
-COMPONENTS = ("features", "keyframes", "matcher", "loops", "association", "map")
+COMPONENTS = ("features", "keyframes", "matcher", "loops", "association", "map", "graph")
 
 
 @dataclass(frozen=True)
@@ -508,9 +531,10 @@ class RobotConfig:
     """Everything the system knows about the robot, and every parameter of every component.
 
     The components' sections (``features``, ``keyframes``, ``matcher``, ``loops``,
-    ``association``, ``map``) are the components' parameter classes themselves; their linked
-    fields are resolved here from the keys they name (also after ``dataclasses.replace``), so
-    ``cfg.map`` is the map management's parameters as the configuration gives them."""
+    ``association``, ``map``, ``graph``) are the components' parameter classes themselves;
+    their linked fields are resolved here from the keys they name (also after
+    ``dataclasses.replace``), so ``cfg.map`` is the map management's parameters as the
+    configuration gives them."""
 
     robot: RobotInfo
     odometry: OdometryConfig
@@ -524,6 +548,7 @@ class RobotConfig:
     loops: LoopParams = field(default_factory=LoopParams)
     association: AssociationParams = field(default_factory=AssociationParams)
     map: MapParams = field(default_factory=MapParams)
+    graph: GraphParams = field(default_factory=GraphParams)
     source: str = field(default="<default>", compare=False)
 
     def __post_init__(self) -> None:

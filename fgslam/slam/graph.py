@@ -124,6 +124,7 @@ class GraphBackend(GraphGuard, Backend):
         self._final = False  # _est is the converged final estimate
         self.failed: str | None = None
         self._start_cov = np.eye(3)
+        self._relinearize_threshold = relinearize_threshold
         self._params = isam2_params(factorization, relinearize_threshold, relinearize_skip)
         self.isam = gtsam.ISAM2(self._params)
         # what the guard did (docs/robustness.md): one line per repair or fallback, and the

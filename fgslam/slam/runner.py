@@ -59,14 +59,27 @@ def make_backend(
 ) -> Backend:
     """A backend by name, built from ``cfg``: the EKF's gate between wheel odometry and a scan
     match of one link (``keyframes.motion_gate_p``, default ``cfg.keyframes``;
-    :meth:`EkfBackend.predict`), the graph's sonar timing (``cfg.sonar.timing``; the EKF has
-    only the scan frame); ``calibration``: the calibration errors to estimate
-    (:meth:`Calibration.from_config`; None: off)."""
+    :meth:`EkfBackend.predict`), the graph's solver settings (``cfg.graph``) and sonar timing
+    (``cfg.sonar.timing``; the EKF has only the scan frame); ``calibration``: the calibration
+    errors to estimate (:meth:`Calibration.from_config`; None: off)."""
     if name == "ekf":
         gate = (keyframes or KeyframeParams.from_config(cfg)).motion_gate_p
         return EkfBackend(motion_gate_p=gate, calibration=calibration)
     if name in ("isam2", "batch"):  # batch: the iSAM2 graph, solved by LM at the end
-        return GraphBackend(calibration=calibration, sonar_timing=cfg.sonar.timing)
+        g = cfg.graph
+        return GraphBackend(
+            robust=g.robust,
+            merge_sigma=g.merge_sigma,
+            relinearize_threshold=g.relinearize_threshold,
+            relinearize_skip=g.relinearize_skip,
+            refresh_every=g.refresh_every,
+            max_final_updates=g.max_final_updates,
+            converge_tol=g.converge_tol,
+            loop_updates=g.loop_updates,
+            calibration=calibration,
+            sonar_timing=cfg.sonar.timing,
+            factorization=g.factorization,
+        )
     raise ValueError(f"unknown backend {name!r}; expected one of {BACKENDS}")
 
 
