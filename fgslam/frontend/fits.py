@@ -214,12 +214,15 @@ def _fit_line_once(phi, r, ok, sigma_r, systematic, max_iter, residual_test, sou
     if d < 1e-3:
         raise FitRejected("through_sensor", "the line passes through the sensor")
     S, E = _rows(systematic, ok.size), _rows(sources, ok.size)
-    out = kernels.line_fit(phi, r, ok, alpha, d, max_iter, S, E)
-    outcome, alpha, d, it, n, ssq, inv, cond, sys_sum, J = out
-    if outcome == kernels.FIT_FALLBACK:
+    try:
+        out = kernels.line_fit(phi, r, ok, alpha, d, max_iter, S, E)
+    except np.linalg.LinAlgError:  # LAPACK failed: the reference says how
+        out = (kernels.FIT_FALLBACK,)
+    if out[0] == kernels.FIT_FALLBACK:
         return _fit_line_once_numpy(
             phi, r, ok, sigma_r, systematic, max_iter, residual_test, sources
         )
+    outcome, alpha, d, it, n, ssq, HtH, inv, sys_sum, J = out
     if outcome == kernels.FIT_GRAZING:
         raise FitRejected("grazing", "a beam runs (almost) parallel to the line")
     if outcome == kernels.FIT_NO_CONVERGENCE:
@@ -227,19 +230,23 @@ def _fit_line_once(phi, r, ok, sigma_r, systematic, max_iter, residual_test, sou
     if d <= 0:
         raise FitRejected("through_sensor", "the fitted line passes behind the sensor")
     scale = _residual_scale(ssq, n, 2, sigma_r, residual_test)
-    if not np.isfinite(cond) or cond > 1e12:
-        raise FitRejected("ill_conditioned", f"condition number {cond:.3g}")
+    # the 2x2 condition number from the eigenvalues; numpy's (an SVD) where it may matter
+    (a00, a01), (_, a11) = HtH.tolist()
+    lmax = 0.5 * (a00 + a11) + math.hypot(0.5 * (a00 - a11), a01)
+    det = a00 * a11 - a01 * a01
+    if not (lmax > 0 and det > 0 and lmax * lmax < 1e11 * det):
+        cond = np.linalg.cond(HtH)
+        if not np.isfinite(cond) or cond > 1e12:
+            raise FitRejected("ill_conditioned", f"condition number {cond:.3g}")
     cov_random = scale * sigma_r**2 * inv
     cov = cov_random + np.diag(sys_sum**2)
-    rms = math.sqrt(ssq / n)
+    rms = float(np.sqrt(ssq / n))
     params = np.array([wrap_angle(alpha), d])
     J = J if len(sources) else None
     return Fit(params, cov, cov_random, it, rms, ok, scale=scale, source_jacobian=J)
 
 
-def _fit_line_once_numpy(
-    phi, r, ok, sigma_r, systematic, max_iter, residual_test, sources
-) -> Fit:
+def _fit_line_once_numpy(phi, r, ok, sigma_r, systematic, max_iter, residual_test, sources) -> Fit:
     """:func:`fit_line` on the beams ``ok``: the numpy reference of :func:`_fit_line_once`."""
     p, rr = phi[ok], r[ok]
     alpha, d = tls_line(rr * np.cos(p), rr * np.sin(p))

@@ -14,18 +14,22 @@ for decision, not just close ones.
 
 :func:`ok_sums`: the centred moments (mean x, mean y, sum dx^2, sum dy^2, sum dx dy) of the
 points ``r (cos phi, sin phi)`` of the beams ``ok``, from which
-:func:`fgslam.frontend.fits.tls_line` (the reference) takes the total-least-squares line.
-Sequential sums instead of numpy's pairwise ones: equal to rounding.
+:func:`fgslam.frontend.fits.tls_line` (the reference) takes the total-least-squares line. The
+sums are numpy's pairwise summation written out (:func:`pairwise_sum`): the same bits.
 
 :func:`line_fit`: the Gauss-Newton iterations and covariances of
-:func:`fgslam.frontend.fits._fit_line_once` (the reference: ``_fit_line_once_numpy``, with
-``np.linalg.lstsq``, ``inv`` and ``cond``): each step solves the 2-column least-squares
-problem by Givens rotations (a QR factorisation, as well conditioned as the reference's
-SVD), then the sum of squared range residuals, ``(H^T H)^-1`` (2x2, by its adjugate) with its
-condition number, ``(H^T H)^-1 H^T e`` for each systematic and each source column. Equal to
-the reference to rounding (1e-9 relative on the tests' random lines), with the same
-iterations and the same rejections; a case the kernel does not take (a non-finite or
-rank-deficient step) is handed back to the reference.
+:func:`fgslam.frontend.fits._fit_line_once` (the reference: ``_fit_line_once_numpy``). It
+computes what the reference's numpy expressions compute, in the same order, through the same
+LAPACK and BLAS routines: each step ``np.linalg.lstsq`` (gelsd, numpy's ``rcond``), ``H^T H``
+and the products BLAS's matrix products, ``(H^T H)^-1`` gesv on the identity (numpy's
+``inv``), the squared residuals' sum numpy's pairwise one. numba calls SciPy's LAPACK and BLAS,
+numpy its own build of them: where the two builds agree (here both OpenBLAS, the same
+kernels) the fits are the reference's bit for bit (the SLAM run downstream is chaotic: a
+one-ulp change of a line's parameters changes which keyframes and loops it takes); else equal
+to rounding (the tests' bound: 1e-9). Only the condition number is computed another way (the
+eigenvalues of the 2x2 matrix; numpy's SVD where it is within 10x of the threshold), so the
+same fits are refused. Non-finite values or a LAPACK failure hand the fit back to the
+reference.
 
 :func:`trim_bounds`: the end trimming of :func:`fgslam.frontend.fits.fit_line`: the
 perpendicular residuals of the kept beams to the fitted line, their robust spread
@@ -169,59 +173,118 @@ def grow_lines(xs, ys, rs, valid, near, ndist, jump, jump_rel, outlier, spread2,
 
 
 @numba.njit(cache=True, nogil=True)
+def _pairwise_block(a, lo, n):  # pragma: no cover - compiled
+    """numpy's pairwise sum of ``a[lo:lo + n]``, n <= 128: eight accumulators."""
+    if n < 8:
+        res = 0.0
+        for i in range(lo, lo + n):
+            res += a[i]
+        return res
+    r0, r1, r2, r3 = a[lo], a[lo + 1], a[lo + 2], a[lo + 3]
+    r4, r5, r6, r7 = a[lo + 4], a[lo + 5], a[lo + 6], a[lo + 7]
+    i = 8
+    while i < n - n % 8:
+        k = lo + i
+        r0 += a[k]
+        r1 += a[k + 1]
+        r2 += a[k + 2]
+        r3 += a[k + 3]
+        r4 += a[k + 4]
+        r5 += a[k + 5]
+        r6 += a[k + 6]
+        r7 += a[k + 7]
+        i += 8
+    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    while i < n:
+        res += a[lo + i]
+        i += 1
+    return res
+
+
+@numba.njit(cache=True, nogil=True)
+def pairwise_sum(a, lo, n):  # pragma: no cover - compiled
+    """``np.sum(a[lo:lo + n])`` of contiguous float64, bit for bit: numpy's pairwise
+    summation (blocks of up to 128 values, halved above, the halves' lengths multiples of 8).
+    numpy recurses; here a stack of halves does (numba's cache does not load recursive
+    functions)."""
+    if n <= 128:
+        return _pairwise_block(a, lo, n)
+    los = np.empty(64, dtype=np.int64)
+    ns = np.empty(64, dtype=np.int64)
+    stage = np.empty(64, dtype=np.int64)
+    vals = np.empty(64)
+    sp, vp = 0, 0
+    los[0], ns[0], stage[0] = lo, n, 0
+    while sp >= 0:
+        l0, m = los[sp], ns[sp]
+        if m <= 128:
+            vals[vp] = _pairwise_block(a, l0, m)
+            vp += 1
+            sp -= 1
+            continue
+        n2 = m // 2
+        n2 -= n2 % 8
+        if stage[sp] == 0:  # the first half next
+            stage[sp] = 1
+            sp += 1
+            los[sp], ns[sp], stage[sp] = l0, n2, 0
+        elif stage[sp] == 1:  # then the second
+            stage[sp] = 2
+            sp += 1
+            los[sp], ns[sp], stage[sp] = l0 + n2, m - n2, 0
+        else:  # both summed: first + second
+            vp -= 1
+            vals[vp - 1] = vals[vp - 1] + vals[vp]
+            sp -= 1
+    return vals[0]
+
+
+@numba.njit(cache=True, nogil=True)
 def ok_sums(phi, r, ok):  # pragma: no cover - compiled
     """(mean x, mean y, sum (x - mx)^2, sum (y - my)^2, sum (x - mx)(y - my)) of the points
-    ``r (cos phi, sin phi)`` of the beams ``ok`` (at least one); float64 arrays and a bool
-    mask of one length."""
+    ``r (cos phi, sin phi)`` of the beams ``ok`` (at least one), as
+    :func:`fgslam.frontend.fits.tls_line` computes them with numpy, bit for bit; float64
+    arrays and a bool mask of one length."""
     n = 0
-    sx = sy = 0.0
     for i in range(phi.shape[0]):
         if ok[i]:
-            sx += r[i] * math.cos(phi[i])
-            sy += r[i] * math.sin(phi[i])
             n += 1
-    mx, my = sx / n, sy / n
-    sxx = syy = sxy = 0.0
+    x = np.empty(n)
+    y = np.empty(n)
+    k = 0
     for i in range(phi.shape[0]):
         if ok[i]:
-            dx = r[i] * math.cos(phi[i]) - mx
-            dy = r[i] * math.sin(phi[i]) - my
-            sxx += dx * dx
-            syy += dy * dy
-            sxy += dx * dy
-    return mx, my, sxx, syy, sxy
+            x[k] = r[i] * math.cos(phi[i])
+            y[k] = r[i] * math.sin(phi[i])
+            k += 1
+    mx, my = pairwise_sum(x, 0, n) / n, pairwise_sum(y, 0, n) / n
+    xx = np.empty(n)
+    yy = np.empty(n)
+    xy = np.empty(n)
+    for k in range(n):
+        dx, dy = x[k] - mx, y[k] - my
+        xx[k], yy[k], xy[k] = dx * dx, dy * dy, dx * dy
+    return mx, my, pairwise_sum(xx, 0, n), pairwise_sum(yy, 0, n), pairwise_sum(xy, 0, n)
 
 
-# line_fit's outcomes: converged, a grazing beam, no convergence, a step the kernel does not
-# take (the caller runs the reference)
+# line_fit's outcomes: converged, a grazing beam, no convergence, a case the kernel does not
+# take (non-finite values: the caller runs the reference)
 FIT_OK, FIT_GRAZING, FIT_NO_CONVERGENCE, FIT_FALLBACK = 0, 1, 2, 3
 
 
 @numba.njit(cache=True, nogil=True)
-def _lsq2(h0, h1, y):  # pragma: no cover - compiled
-    """Least squares ``min |[h0 h1] x - y|`` by Givens rotations: x, or NaNs when the
-    columns are (numerically) dependent."""
-    r00 = r01 = r11 = 0.0
-    b0 = b1 = 0.0
-    for k in range(h0.shape[0]):
-        a0, a1, yk = h0[k], h1[k], y[k]
-        # rotate the row into R's first row
-        if a0 != 0.0:
-            rho = math.hypot(r00, a0)
-            c, s = r00 / rho, a0 / rho
-            r00 = rho
-            r01, a1 = c * r01 + s * a1, -s * r01 + c * a1
-            b0, yk = c * b0 + s * yk, -s * b0 + c * yk
-        # then its remainder into the second
-        if a1 != 0.0:
-            rho = math.hypot(r11, a1)
-            c, s = r11 / rho, a1 / rho
-            r11 = rho
-            b1 = c * b1 + s * yk
-    if r00 == 0.0 or abs(r11) <= 1e-14 * abs(r00):
-        return math.nan, math.nan
-    x1 = b1 / r11
-    return (b0 - r01 * x1) / r00, x1
+def _jacobian(p, rr, alpha, d, H, y):  # pragma: no cover - compiled
+    """The fit's Jacobian ``H`` and range residuals ``y`` at (alpha, d), as the reference's
+    numpy expressions; False if a beam grazes the line (cos <= 0.02)."""
+    grazing = False
+    for k in range(p.shape[0]):
+        c = math.cos(alpha - p[k])
+        if c <= 0.02:
+            grazing = True
+        H[k, 0] = d * math.sin(alpha - p[k]) / (c * c)
+        H[k, 1] = 1.0 / c
+        y[k] = rr[k] - d / c
+    return not grazing
 
 
 @numba.njit(cache=True, nogil=True)
@@ -232,119 +295,65 @@ def _line_fit(phi, r, ok, alpha, d, max_iter, S_all, E_all):  # pragma: no cover
             n += 1
     p = np.empty(n)
     rr = np.empty(n)
-    S = np.empty((S_all.shape[0], n))
-    E = np.empty((E_all.shape[0], n))
+    S = np.empty((S_all.shape[0], n))  # a row per source, as the reference's vectors
+    E = np.empty((n, E_all.shape[0]))  # a column per source, as the reference's matrix
     k = 0
     for i in range(ok.shape[0]):
         if ok[i]:
             p[k], rr[k] = phi[i], r[i]
             S[:, k] = S_all[:, i]
-            E[:, k] = E_all[:, i]
+            E[k, :] = E_all[:, i]
             k += 1
-    h0 = np.empty(n)
-    h1 = np.empty(n)
+    H = np.empty((n, 2))
     y = np.empty(n)
+    rcond = np.finfo(np.float64).eps * max(n, 2)  # numpy's lstsq with rcond=None
+    none = np.zeros((2, 2))
     it = 0
     converged = False
     for it in range(1, max_iter + 1):
-        for k in range(n):
-            c = math.cos(alpha - p[k])
-            if c <= 0.02:
-                return (
-                    FIT_GRAZING,
-                    alpha,
-                    d,
-                    it,
-                    n,
-                    0.0,
-                    np.zeros((2, 2)),
-                    0.0,
-                    np.zeros(2),
-                    np.zeros((2, 0)),
-                )
-            h0[k] = d * math.sin(alpha - p[k]) / (c * c)
-            h1[k] = 1.0 / c
-            y[k] = rr[k] - d / c
-        s0, s1 = _lsq2(h0, h1, y)
-        if not (math.isfinite(s0) and math.isfinite(s1)):
-            return (
-                FIT_FALLBACK,
-                alpha,
-                d,
-                it,
-                n,
-                0.0,
-                np.zeros((2, 2)),
-                0.0,
-                np.zeros(2),
-                np.zeros((2, 0)),
-            )
-        alpha, d = alpha + s0, d + s1
-        if abs(s0) < 1e-8 and abs(s1) < 1e-7:
+        if not _jacobian(p, rr, alpha, d, H, y):
+            return FIT_GRAZING, alpha, d, it, n, 0.0, none, none, np.zeros(2), np.zeros((2, 0))
+        if not (np.isfinite(H).all() and np.isfinite(y).all()):
+            return FIT_FALLBACK, alpha, d, it, n, 0.0, none, none, np.zeros(2), np.zeros((2, 0))
+        step = np.linalg.lstsq(H, y, rcond=rcond)[0]  # LAPACK's gelsd, as numpy's
+        alpha, d = alpha + step[0], d + step[1]
+        if abs(step[0]) < 1e-8 and abs(step[1]) < 1e-7:
             converged = True
             break
     if not converged:
-        return (
-            FIT_NO_CONVERGENCE,
-            alpha,
-            d,
-            it,
-            n,
-            0.0,
-            np.zeros((2, 2)),
-            0.0,
-            np.zeros(2),
-            np.zeros((2, 0)),
-        )
-    # the Jacobian and residuals at the solution, H^T H and the squared residuals
-    a00 = a01 = a11 = ssq = 0.0
+        return FIT_NO_CONVERGENCE, alpha, d, it, n, 0.0, none, none, np.zeros(2), np.zeros((2, 0))
+    if d <= 0:  # the caller rejects it before anything below
+        return FIT_OK, alpha, d, it, n, 0.0, none, none, np.zeros(2), np.zeros((2, 0))
+    _jacobian(p, rr, alpha, d, H, y)
+    if not (np.isfinite(H).all() and np.isfinite(y).all()):
+        return FIT_FALLBACK, alpha, d, it, n, 0.0, none, none, np.zeros(2), np.zeros((2, 0))
     for k in range(n):
-        c = math.cos(alpha - p[k])
-        h0[k] = d * math.sin(alpha - p[k]) / (c * c)
-        h1[k] = 1.0 / c
-        e = rr[k] - d / c
-        ssq += e * e
-        a00 += h0[k] * h0[k]
-        a01 += h0[k] * h1[k]
-        a11 += h1[k] * h1[k]
-    inv = np.empty((2, 2))
-    det = a00 * a11 - a01 * a01
-    inv[0, 0], inv[0, 1], inv[1, 0], inv[1, 1] = a11 / det, -a01 / det, -a01 / det, a00 / det
-    # the 2-norm condition number of the symmetric H^T H: its eigenvalues' ratio
-    half = 0.5 * (a00 + a11)
-    root = math.hypot(0.5 * (a00 - a11), a01)
-    lmax = half + root
-    lmin = det / lmax if lmax > 0.0 else 0.0
-    cond = lmax / lmin if lmin > 0.0 else math.inf
+        y[k] = y[k] * y[k]
+    ssq = pairwise_sum(y, 0, n)
+    HtH = H.T @ H
+    # gesv on the identity, as numpy's inv, and in C order as numpy's (the products below
+    # take another BLAS path for a Fortran-ordered matrix)
+    inv = np.ascontiguousarray(np.linalg.solve(HtH, np.eye(2)))
     sys_sum = np.zeros(2)
     for s in range(S.shape[0]):
-        g0 = g1 = 0.0
-        for k in range(n):
-            g0 += h0[k] * S[s, k]
-            g1 += h1[k] * S[s, k]
-        sys_sum[0] += abs(inv[0, 0] * g0 + inv[0, 1] * g1)
-        sys_sum[1] += abs(inv[1, 0] * g0 + inv[1, 1] * g1)
-    J = np.empty((2, E.shape[0]))
-    for s in range(E.shape[0]):
-        g0 = g1 = 0.0
-        for k in range(n):
-            g0 += h0[k] * E[s, k]
-            g1 += h1[k] * E[s, k]
-        J[0, s] = inv[0, 0] * g0 + inv[0, 1] * g1
-        J[1, s] = inv[1, 0] * g0 + inv[1, 1] * g1
-    return FIT_OK, alpha, d, it, n, ssq, inv, cond, sys_sum, J
+        # numpy's inv @ vector is BLAS's matrix product with a column
+        sys_sum += np.abs((inv @ (H.T @ S[s]).reshape(2, 1))[:, 0])
+    J = inv @ (H.T @ E)
+    return FIT_OK, alpha, d, it, n, ssq, HtH, inv, sys_sum, J
 
 
 def line_fit(phi, r, ok, alpha, d, max_iter, S, E):
     """Gauss-Newton from the line (alpha, d) over the beams ``ok`` (bearings ``phi``, ranges
     ``r``; float64 arrays and a bool mask of one length) minimising the squared range
-    residuals, then, at the solution, the sum of the squared residuals, ``(H^T H)^-1``, its
-    condition number, the sum over the rows ``e`` of ``S`` of ``|(H^T H)^-1 H^T e|`` and the
-    columns ``(H^T H)^-1 H^T e`` for the rows of ``E`` (both (k, len(phi)) float64, on every
-    beam: the kernel takes those ``ok``). Returns (outcome, alpha, d, iterations, beams used,
-    ssq, inv, cond, sys_sum, J), the outcome one of FIT_OK, FIT_GRAZING,
-    FIT_NO_CONVERGENCE, FIT_FALLBACK (the values after the beams used only for FIT_OK;
-    alpha not wrapped)."""
+    residuals, then, at the solution, the sum of the squared residuals, ``H^T H``, its
+    inverse, the sum over the rows ``e`` of ``S`` of ``|(H^T H)^-1 H^T e|`` and the columns
+    ``(H^T H)^-1 H^T e`` for the rows of ``E`` (both (k, len(phi)) float64, on every beam:
+    the kernel takes those ``ok``). Returns (outcome, alpha, d, iterations, beams used, ssq,
+    HtH, inv, sys_sum, J), the outcome one of FIT_OK, FIT_GRAZING, FIT_NO_CONVERGENCE,
+    FIT_FALLBACK (the values after the beams used only for FIT_OK with d > 0; alpha not
+    wrapped). Each step is ``np.linalg.lstsq`` (LAPACK's gelsd, as numpy calls it),
+    ``(H^T H)^-1`` LAPACK's gesv on the identity (as ``np.linalg.inv``), products BLAS's and
+    sums numpy's pairwise ones: the reference's numbers bit for bit."""
     return _line_fit(phi, r, ok, float(alpha), float(d), int(max_iter), S, E)
 
 
