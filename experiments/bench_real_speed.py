@@ -309,9 +309,12 @@ def run_child(
     split_: bool = False,
 ) -> dict:
     env = dict(os.environ, PYTHONPATH=str(tree))
-    # the tree's own copy of this script where it has one: module paths move between revisions
+    # the tree's own copy of this script where it knows the log (module paths move between
+    # revisions); else this one, on that tree
     own = tree / "experiments" / Path(__file__).name
-    script = own if own.is_file() else Path(__file__).resolve()
+    script = Path(__file__).resolve()
+    if own.is_file() and (log == "corridor" or f'"{log}"' in own.read_text()):
+        script = own
     cmd = [sys.executable, str(script), "--child", "--logs", log]
     cmd += ["--backends", *backends]
     if max_scans is not None:
