@@ -5,12 +5,24 @@ a fresh process.
 
 Run: python experiments/bench_kernels.py [--repeat 200]
 Prints a markdown table, a row per kernel: per-call time of the numpy reference and of the
-compiled kernel, their ratio, and the first call's time in a cold and in a warm process. The
-inputs: gather_sums a correlative search's level (361 beams, 41 rotations, 500 candidates);
-the front end's a 361-beam scan of walls (segment_scan, with the line growing compiled,
-against segment_scan_reference) and a 60-beam wall (fit_line's single fit with its
-covariances and source Jacobians, against _fit_line_once_numpy; the end trimming, against
-_trim_bounds_numpy).
+compiled kernel, their ratio, and the first call's time (on a tiny input) in a cold and in a
+warm process. Every compiled result is checked against its reference before it is timed.
+
+The scan matcher's inputs: a simulated scan (361 beams, 1 cm noise, fgslam.sim.raycast) of an
+8 x 5 m box room with a pillar, prepared as a Reference with the configured MatchParams
+(361 points, a 73 x 147 grid of 4 cm cells), and a second scan from up to 0.3 m / 0.1 rad away.
+branch_and_bound: the whole correlative search (search._search against search._search_numpy:
+the same window and pyramid, the branch and bound compiled or in numpy; the same candidates and
+scores) from a guess off the truth, 39 rotations x 17 x 17 translations; icp_loop: the whole
+ICP (icp._icp against icp._icp_numpy, the inliers' Jacobians included) from a start off the
+truth; local_lines and polyline_cells: the Reference's local lines and polyline cells over its
+binned points (kernels.cells, built once) against reference._normals_numpy and
+reference._polyline_cells_numpy over a cKDTree (built once); splat: the likelihood kernel
+stamped around the polyline's cells (the Reference's grid); max_pool: the search's crop of that
+grid (28 124 cells) max-pooled up to its coarsest block (8 cells, 4 levels). The front end's: a
+361-beam scan of walls (segment_scan, with the line growing compiled, against
+segment_scan_reference) and a 60-beam wall (fit_line's single fit with its covariances and
+source Jacobians, against _fit_line_once_numpy; the end trimming, against _trim_bounds_numpy).
 """
 
 from __future__ import annotations
@@ -29,14 +41,27 @@ CHILD = """
 import sys, time, json
 t0 = time.perf_counter()
 import numpy as np
-from fgslam.scanmatch.kernels import gather_sums
+from fgslam.scanmatch import kernels as sk
 from fgslam.frontend import fits, segmentation
 from fgslam.config import SegmentParams
 t1 = time.perf_counter()
 kernel = sys.argv[1]
-if kernel == "gather_sums":
-    flat = np.zeros(100, dtype=np.uint8); base = np.zeros((1, 3), dtype=np.int64)
-    gather_sums(flat, base, np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64))
+p = np.column_stack([np.linspace(0.0, 1.0, 20), np.zeros(20)])
+if kernel == "branch_and_bound":
+    levels = np.zeros((2, 200), dtype=np.uint8); base = np.full((1, 3), 100, dtype=np.int64)
+    sk.branch_and_bound(levels, base, 1, 2, 2, 10, 3, 0.1, 10)
+elif kernel == "icp_loop":
+    nrm = np.tile([0.0, 1.0], (20, 1))
+    sk.icp_loop(sk.cells(p, 0.2), nrm, p.copy(), p + 0.01, np.zeros(3), 0.02, 3.0, 0.2, 5)
+elif kernel == "local_lines":
+    sk.local_lines(sk.cells(p, 0.2), 10, 0.25, 4e-4)
+elif kernel == "polyline_cells":
+    sk.polyline_cells(sk.cells(p, 0.2), 0.2, np.array([-0.1, -0.1]), 0.04, (32, 6))
+elif kernel == "splat":
+    off = np.array([-1, 0, 1], dtype=np.int64)
+    sk.splat(np.array([5], dtype=np.int64), off, np.array([1, 2, 1], dtype=np.uint8), 10)
+elif kernel == "max_pool":
+    sk.max_pool(np.zeros((8, 8), dtype=np.uint8), 4)
 elif kernel == "grow_lines":
     segmentation.segment_scan(np.linspace(-1, 1, 20), np.full(20, 2.0), SegmentParams())
 else:
@@ -50,16 +75,32 @@ print(json.dumps({"import_s": t1 - t0, "first_call_s": t2 - t1}))
 """
 
 
-def inputs(seed: int = 0):
-    """A correlative search's level: a 400 x 400 grid, 361 points at 41 rotations, 500
-    candidate translations within 10 cells."""
+def box_scans(seed: int = 0):
+    """A Reference from a simulated scan of a box room with a pillar (the reference at a
+    random pose), a query scan from up to 0.3 m and 0.1 rad away, the query's true pose in
+    the reference's frame, and the MatchParams."""
+    from fgslam.config import load_config
+    from fgslam.scanmatch import MatchParams, Reference, scan_points
+    from fgslam.sim.raycast import raycast
+
+    box = [(0, 0, 8, 0), (8, 0, 8, 5), (8, 5, 0, 5), (0, 5, 0, 0), (3, 2.5, 3.5, 3.0)]
+    segs = np.asarray(box, dtype=float)
+    cfg = load_config()
+    bearings = cfg.laser.bearings
     rng = np.random.default_rng(seed)
-    ny = 400
-    flat = rng.integers(0, 256, 400 * ny, dtype=np.uint8)
-    base = rng.integers(20 * ny, 380 * ny, (41, 361), dtype=np.int64)
-    r = rng.integers(0, 41, 500, dtype=np.int64)
-    off = rng.integers(-10, 11, 500) * ny + rng.integers(-10, 11, 500)
-    return flat, base, r, off
+
+    def scan(pose):
+        r = raycast(np.asarray(pose[:2]), pose[2] + bearings, segs)
+        return scan_points(r + rng.normal(0, 0.01, r.shape), bearings, max_range=20.0)
+
+    a = np.array([rng.uniform(1.5, 2.5), rng.uniform(1.5, 3.5), rng.uniform(-np.pi, np.pi)])
+    b = a + np.array([*rng.uniform(-0.3, 0.3, 2), rng.uniform(-0.1, 0.1)])
+    params = MatchParams.from_config(cfg)
+    ref = Reference.build(scan(a), params)
+    c, s = np.cos(a[2]), np.sin(a[2])
+    d = b[:2] - a[:2]
+    truth = np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1], b[2] - a[2]])
+    return ref, scan(b), truth, params, rng
 
 
 def frontend_inputs(seed: int = 0):
@@ -84,6 +125,88 @@ def per_call(fn, args, repeat: int) -> float:
     for _ in range(repeat):
         fn(*args)
     return (time.perf_counter() - t0) / repeat
+
+
+def scanmatch_rows(repeat: int) -> list[tuple[str, float, float]]:
+    """(kernel, numpy s/call, compiled s/call) of the scan matcher's kernels on a box room's
+    scans, each checked against its reference first."""
+    import math
+
+    from fgslam.scanmatch import icp, kernels, search
+    from fgslam.scanmatch.reference import _normals_numpy, _polyline_cells_numpy
+
+    ref, q, truth, params, rng = box_scans()
+    tree = ref.tree
+    # the search from a guess off the truth
+    guess = truth + np.array([*rng.uniform(-0.1, 0.1, 2), rng.uniform(-0.05, 0.05)])
+    got, want = search._search(ref, q, guess, params), search._search_numpy(ref, q, guess, params)
+    assert np.array_equal(got.poses, want.poses) and np.array_equal(got.scores, want.scores)
+    s_args = (ref, q, guess, params)
+    # ICP from a start off the truth
+    start = truth + np.array([*rng.uniform(-0.06, 0.06, 2), rng.uniform(-0.02, 0.02)])
+    got, want = icp._icp(ref, q, start, params), icp._icp_numpy(ref, q, start, params)
+    np.testing.assert_allclose(got.pose, want.pose, rtol=0, atol=1e-9)
+    assert got.iterations == want.iterations
+    i_args = (ref, q, start, params)
+    # the Reference's local lines and polyline cells, as Reference.build makes them
+    p, c = ref.points, ref.cells
+    l_args = (c, params.normal_k, params.normal_radius, params.sigma_range**2)
+    ln_args = (p, tree, params)
+    got, want = kernels.local_lines(*l_args), _normals_numpy(*ln_args)
+    for x, y in zip(got, want, strict=True):
+        np.testing.assert_allclose(x, y, rtol=1e-9, atol=1e-9)
+    res = ref.resolution
+    reach = math.ceil(3.0 * ref._blur / res) + 1
+    shape = tuple(np.floor((p.max(axis=0) - p.min(axis=0)) / res).astype(int) + 2 * reach + 1)
+    pc = (params.link_distance, ref.origin, res, shape)
+    occ = kernels.polyline_cells(c, *pc)
+    assert np.array_equal(occ, _polyline_cells_numpy(p, tree, *pc))
+    # the likelihood kernel splatted around them (the Reference's grid)
+    k = np.arange(-reach, reach + 1)
+    kx, ky = np.meshgrid(k, k, indexing="ij")
+    kd = np.hypot(kx, ky).ravel() * res
+    use = kd <= 3.0 * ref._blur
+    off = (kx.ravel() * shape[1] + ky.ravel())[use]
+    val = np.round(255.0 * np.exp(-0.5 * (kd[use] / ref._blur) ** 2)).astype(np.uint8)
+    sp_args = (occ, off, val, shape[0] * shape[1])
+    assert np.array_equal(kernels.splat(*sp_args).reshape(shape), ref.grid)
+    assert np.array_equal(kernels.splat(*sp_args), kernels.splat_numpy(*sp_args))
+    # the search's crop of that grid, max-pooled up to its coarsest block (as _pyramid does)
+    win = search._window(ref, q, guess, params)
+    mp_args = (win.levels[0].reshape(-1, win.ny), win.top)
+    assert np.array_equal(kernels.max_pool(*mp_args), kernels.max_pool_numpy(*mp_args))
+    return [
+        (
+            "branch_and_bound (search._search)",
+            per_call(search._search_numpy, s_args, repeat),
+            per_call(search._search, s_args, repeat),
+        ),
+        (
+            "icp_loop (icp._icp)",
+            per_call(icp._icp_numpy, i_args, repeat),
+            per_call(icp._icp, i_args, repeat),
+        ),
+        (
+            "local_lines",
+            per_call(_normals_numpy, ln_args, repeat),
+            per_call(kernels.local_lines, l_args, repeat),
+        ),
+        (
+            "polyline_cells",
+            per_call(_polyline_cells_numpy, (p, tree, *pc), repeat),
+            per_call(kernels.polyline_cells, (c, *pc), repeat),
+        ),
+        (
+            "splat",
+            per_call(kernels.splat_numpy, sp_args, repeat),
+            per_call(kernels.splat, sp_args, repeat),
+        ),
+        (
+            "max_pool",
+            per_call(kernels.max_pool_numpy, mp_args, repeat),
+            per_call(kernels.max_pool, mp_args, repeat),
+        ),
+    ]
 
 
 def frontend_rows(repeat: int) -> list[tuple[str, float, float]]:
@@ -122,7 +245,7 @@ def frontend_rows(repeat: int) -> list[tuple[str, float, float]]:
     ]
 
 
-def start(cache_dir: str, kernel: str = "gather_sums") -> dict:
+def start(cache_dir: str, kernel: str) -> dict:
     env = dict(os.environ, NUMBA_CACHE_DIR=cache_dir)
     cmd = [sys.executable, "-c", CHILD, kernel]
     out = subprocess.run(cmd, env=env, check=True, capture_output=True)
@@ -133,13 +256,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--repeat", type=int, default=200, help="calls timed per kernel")
     args = ap.parse_args()
-    from fgslam.scanmatch.kernels import gather_sums, gather_sums_numpy
-
-    flat, base, r, off = inputs()
-    assert np.array_equal(gather_sums(flat, base, r, off), gather_sums_numpy(flat, base, r, off))
-    t_np = per_call(gather_sums_numpy, (flat, base, r, off), args.repeat)
-    t_nb = per_call(gather_sums, (flat, base, r, off), args.repeat)
-    rows = [("gather_sums", t_np, t_nb), *frontend_rows(args.repeat)]
+    rows = [*scanmatch_rows(args.repeat), *frontend_rows(args.repeat)]
     print(
         "| kernel | numpy (ms/call) | compiled (ms/call) | ratio | first call cold (s) | "
         "first call warm (s) |"

@@ -6,45 +6,57 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fgslam.scanmatch.kernels import gather_sums, gather_sums_numpy
+from fgslam.scanmatch.kernels import branch_and_bound, gather_sums_numpy
+
+
+def _all_candidates(flat, base, n, ny):
+    """branch_and_bound on one level (top 1) keeping every candidate: each rotation x each
+    translation -n .. n cells, in the reference's order, with its score."""
+    nrot, npts = base.shape
+    return branch_and_bound(flat[None], base, nrot, n, 1, ny, npts, 2.0, 10**9)
 
 
 @pytest.mark.parametrize("seed", range(20))
-def test_gather_sums_equal_the_reference(seed):
+def test_branch_and_bound_scores_are_the_reference_sums(seed):
+    """On one level keeping everything, the compiled search scores every candidate with
+    gather_sums_numpy (the numpy search's scoring) over 255 x points, exactly."""
     rng = np.random.default_rng(seed)
-    size = int(rng.integers(50, 5000))
+    ny = int(rng.integers(5, 60))
+    n = int(rng.integers(0, 4))
+    size = ny * int(rng.integers(2 * n + 3, 80))
     flat = rng.integers(0, 256, size, dtype=np.uint8)
-    n_rot, n_pts = int(rng.integers(1, 30)), int(rng.integers(0, 400))
-    spread = size // 3
-    base = rng.integers(spread, size - spread, (n_rot, n_pts), dtype=np.int64)
-    k = int(rng.integers(0, 500))
-    r = rng.integers(0, n_rot, k, dtype=np.int64)
-    off = rng.integers(-spread, spread, k, dtype=np.int64)
-    got = gather_sums(flat, base, r, off)
-    want = gather_sums_numpy(flat, base.copy(), r, off)
-    assert got.dtype == np.uint32 and want.dtype == np.uint32
-    np.testing.assert_array_equal(got, want)
+    reach = n * (ny + 1)
+    base = rng.integers(reach, size - reach, (int(rng.integers(1, 8)), int(rng.integers(1, 400))))
+    cr, cx, cy, score = _all_candidates(flat, base, n, ny)
+    assert len(score) == base.shape[0] * (2 * n + 1) ** 2
+    want = gather_sums_numpy(flat, base.copy(), cr, cx * ny + cy)
+    assert want.dtype == np.uint32
+    np.testing.assert_array_equal(score, want / (255.0 * base.shape[1]))
 
 
 def test_all_255_sums_do_not_overflow():
-    """The largest score: every point on a 255 cell, 16 000 points, sums exactly."""
+    """The largest score: every point on a 255 cell, 16 000 points, sums exactly (the
+    reference's uint32 sums and the compiled search's score 1)."""
     flat = np.full(100, 255, dtype=np.uint8)
     base = np.full((1, 16_000), 50, dtype=np.int64)
     r, off = np.zeros(3, dtype=np.int64), np.array([-50, 0, 49])
-    np.testing.assert_array_equal(gather_sums(flat, base, r, off), [255 * 16_000] * 3)
+    np.testing.assert_array_equal(gather_sums_numpy(flat, base, r, off), [255 * 16_000] * 3)
+    *_, score = _all_candidates(flat, base, 4, 10)
+    np.testing.assert_array_equal(score, np.ones(81))
 
 
-@pytest.mark.parametrize("shift", [-11, 1])
-def test_an_index_outside_the_grid_is_refused(shift):
+@pytest.mark.parametrize("cell", [0, 9])
+def test_a_cell_outside_the_level_is_refused(cell):
+    """A query point whose cell plus a translation leaves the level: the compiled search
+    raises IndexError, before the start as past the end; the reference's take past the end
+    (a negative index would wrap there)."""
     flat = np.zeros(10, dtype=np.uint8)
-    base = np.array([[0, 5, 9]], dtype=np.int64)
-    off = np.array([shift])
-    r = np.zeros(1, dtype=np.int64)
+    base = np.array([[cell]], dtype=np.int64)
     with pytest.raises(IndexError):
-        gather_sums(flat, base, r, off)
-    if shift > 0:  # numpy's take refuses past the end; a negative index would wrap there
+        _all_candidates(flat, base, 1, 1)  # translations -2 .. 2 cells
+    if cell == 9:
         with pytest.raises(IndexError):
-            gather_sums_numpy(flat, base.copy(), r, off)
+            gather_sums_numpy(flat, base.copy(), np.zeros(1, dtype=np.int64), np.array([1]))
 
 
 @pytest.mark.parametrize("seed", range(12))

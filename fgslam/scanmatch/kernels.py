@@ -1,18 +1,29 @@
 """Compiled inner loops of the scan matcher (numba, cached on disk), each with the numpy
-reference it must equal (tests/test_kernels.py checks them on random inputs).
+reference it must equal (tests/test_kernels.py checks them on random inputs and on simulated
+scans).
 
-:func:`gather_sums`: the correlative search's score of candidate poses. ``flat`` is a raveled
+The correlative search (:mod:`fgslam.scanmatch.search`): :func:`branch_and_bound` scores
+candidate poses on max-pooled likelihood levels, splits the blocks in four, keeps a greedy
+lower bound and caps the candidates, in one call; its reference is the whole numpy search
+``search._search_numpy``, whose scoring is :func:`gather_sums_numpy`: ``flat`` a raveled
 likelihood level (uint8, 255 = most likely), ``base[r]`` the flat cells of the query points
-at rotation ``r``, ``off`` each candidate's translation as a flat offset; the score of
-candidate ``k`` is ``sum_j flat[base[r[k], j] + off[k]]``. Integer sums: the compiled loop and
-the reference give the same numbers, not just close ones. The compiled loop reads the cells
-in place instead of building the (candidates x points) index array of the reference.
+at rotation ``r``, ``off`` each candidate's translation as a flat offset, the score of
+candidate ``k`` ``sum_j flat[base[r[k], j] + off[k]]``. Integer sums: both give the same
+candidates, order and scores, not just close ones. :func:`max_pool` the levels
+(:func:`max_pool_numpy`, byte for byte).
+
+The reference's preparation (:class:`fgslam.scanmatch.reference.Reference`): the points
+binned in :class:`Cells` (:func:`cells`) for fixed-radius queries; :func:`local_lines` each
+point's local line (reference ``reference._normals_numpy``, over scipy's cKDTree);
+:func:`polyline_cells` the cells of the points joined to their nearest neighbours (reference
+``reference._polyline_cells_numpy``); :func:`splat` the likelihood kernel stamped around
+those cells (:func:`splat_numpy`, byte for byte).
 
 :func:`icp_loop`: the point-to-line ICP's Gauss-Newton iterations
 (:mod:`fgslam.scanmatch.icp`, whose ``_icp_numpy`` is the reference): correspondences to the
-nearest reference point within ``corr_distance`` (:func:`correspond`, over the points binned
-in :class:`Cells`, the reference being scipy's cKDTree), the Jacobian row
-``J = (n^T R, n^T R J_q)`` in the query's body tangent, Cauchy weights
+nearest reference point within ``corr_distance`` (:func:`correspond`, over :class:`Cells`
+by :func:`nearest_within`, the reference being scipy's cKDTree: :func:`nearest_within_numpy`),
+the Jacobian row ``J = (n^T R, n^T R J_q)`` in the query's body tangent, Cauchy weights
 ``w = 1 / (1 + (r / c)^2)``, ``H = sum w J J^T`` and ``g = sum w J r`` (the reference:
 :func:`icp_system_numpy`), a 3x3 solve and GTSAM's Pose2 retract. Float sums in another
 order than numpy's: equal to the reference to rounding, not bit for bit.
@@ -32,40 +43,12 @@ from scipy.spatial import cKDTree
 def gather_sums_numpy(
     flat: NDArray[np.uint8], base: NDArray[np.int64], r: NDArray[np.int64], off: NDArray[np.int64]
 ) -> NDArray[np.uint32]:
-    """The reference: ``flat[base[r] + off[:, None]].sum(axis=1)`` as uint32."""
+    """The reference scoring of :func:`fgslam.scanmatch.search._search_numpy` (what
+    :func:`branch_and_bound` computes in its loop): ``flat[base[r] + off[:, None]].sum(axis=1)``
+    as uint32, exact for any scan. An index past the end of ``flat`` raises IndexError."""
     idx = base[r]
     idx += off[:, None]
     return flat.take(idx).sum(axis=1, dtype=np.uint32)
-
-
-@numba.njit(cache=True, nogil=True)
-def _gather_sums(flat, base, r, off):  # pragma: no cover - compiled
-    k_n = r.shape[0]
-    n = base.shape[1]
-    size = flat.shape[0]
-    out = np.empty(k_n, dtype=np.uint32)
-    for k in range(k_n):
-        row = r[k]
-        o = off[k]
-        s = 0
-        for j in range(n):
-            i = base[row, j] + o
-            if i < 0 or i >= size:
-                raise IndexError("gather_sums: a cell index outside the likelihood level")
-            s += flat[i]
-        out[k] = s
-    return out
-
-
-def gather_sums(
-    flat: NDArray[np.uint8], base: NDArray[np.int64], r: NDArray[np.int64], off: NDArray[np.int64]
-) -> NDArray[np.uint32]:
-    """:func:`gather_sums_numpy`, compiled. Every index must lie inside ``flat`` (the search's
-    pyramid guarantees it: a point off the grid looks up a zero block); an index outside
-    raises IndexError as the reference does."""
-    r = np.ascontiguousarray(r, dtype=np.int64)
-    off = np.ascontiguousarray(off, dtype=np.int64)
-    return _gather_sums(flat, np.ascontiguousarray(base, dtype=np.int64), r, off)
 
 
 def icp_system_numpy(
