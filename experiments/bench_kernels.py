@@ -18,8 +18,9 @@ ICP (icp._icp against icp._icp_numpy, the inliers' Jacobians included) from a st
 truth; local_lines and polyline_cells: the Reference's local lines and polyline cells over its
 binned points (kernels.cells, built once) against reference._normals_numpy and
 reference._polyline_cells_numpy over a cKDTree (built once); splat: the likelihood kernel
-stamped around the polyline's cells (the Reference's grid); max_pool: the search's crop of that
-grid (28 124 cells) max-pooled up to its coarsest block (8 cells, 4 levels). The front end's: a
+stamped around the polyline's cells (the Reference's grid). (A compiled max-pooling of the
+search's crop, 28 124 cells, 4 levels, ran 0.7x numpy's: it stays numpy, search._pool.) The
+front end's: a
 361-beam scan of walls (segment_scan, with the line growing compiled, against
 segment_scan_reference) and a 60-beam wall (fit_line's single fit with its covariances and
 source Jacobians, against _fit_line_once_numpy; the end trimming, against _trim_bounds_numpy).
@@ -60,8 +61,6 @@ elif kernel == "polyline_cells":
 elif kernel == "splat":
     off = np.array([-1, 0, 1], dtype=np.int64)
     sk.splat(np.array([5], dtype=np.int64), off, np.array([1, 2, 1], dtype=np.uint8), 10)
-elif kernel == "max_pool":
-    sk.max_pool(np.zeros((8, 8), dtype=np.uint8), 4)
 elif kernel == "grow_lines":
     segmentation.segment_scan(np.linspace(-1, 1, 20), np.full(20, 2.0), SegmentParams())
 else:
@@ -171,10 +170,6 @@ def scanmatch_rows(repeat: int) -> list[tuple[str, float, float]]:
     sp_args = (occ, off, val, shape[0] * shape[1])
     assert np.array_equal(kernels.splat(*sp_args).reshape(shape), ref.grid)
     assert np.array_equal(kernels.splat(*sp_args), kernels.splat_numpy(*sp_args))
-    # the search's crop of that grid, max-pooled up to its coarsest block (as _pyramid does)
-    win = search._window(ref, q, guess, params)
-    mp_args = (win.levels[0].reshape(-1, win.ny), win.top)
-    assert np.array_equal(kernels.max_pool(*mp_args), kernels.max_pool_numpy(*mp_args))
     return [
         (
             "branch_and_bound (search._search)",
@@ -200,11 +195,6 @@ def scanmatch_rows(repeat: int) -> list[tuple[str, float, float]]:
             "splat",
             per_call(kernels.splat_numpy, sp_args, repeat),
             per_call(kernels.splat, sp_args, repeat),
-        ),
-        (
-            "max_pool",
-            per_call(kernels.max_pool_numpy, mp_args, repeat),
-            per_call(kernels.max_pool, mp_args, repeat),
         ),
     ]
 

@@ -9,8 +9,8 @@ lower bound and caps the candidates, in one call; its reference is the whole num
 likelihood level (uint8, 255 = most likely), ``base[r]`` the flat cells of the query points
 at rotation ``r``, ``off`` each candidate's translation as a flat offset, the score of
 candidate ``k`` ``sum_j flat[base[r[k], j] + off[k]]``. Integer sums: both give the same
-candidates, order and scores, not just close ones. :func:`max_pool` the levels
-(:func:`max_pool_numpy`, byte for byte).
+candidates, order and scores, not just close ones. (The max-pooled levels stay numpy's,
+``search._pool``: a compiled loop was slower, ``experiments/bench_kernels.py``.)
 
 The reference's preparation (:class:`fgslam.scanmatch.reference.Reference`): the points
 binned in :class:`Cells` (:func:`cells`) for fixed-radius queries; :func:`local_lines` each
@@ -679,50 +679,3 @@ def branch_and_bound(
         float(margin),
         int(max_candidates),
     )
-
-
-def max_pool_numpy(a: NDArray[np.uint8], top: int) -> NDArray[np.uint8]:
-    """The reference: levels 1, 2, 4, .., ``top`` cells of ``a`` (2-D), level l the max over
-    ``a[i:i+2^l, j:j+2^l]`` (cells beyond the edge left out), stacked (L, rows, cols)."""
-    levels = [a]
-    w = 1
-    while w < top:
-        m = levels[-1]
-        nxt = m.copy()
-        nxt[:-w, :] = np.maximum(m[:-w, :], m[w:, :])
-        nxt[:, :-w] = np.maximum(nxt[:, :-w], nxt[:, w:])
-        levels.append(nxt)
-        w *= 2
-    return np.stack(levels)
-
-
-@numba.njit(cache=True, nogil=True)
-def _max_pool(a, top):  # pragma: no cover - compiled
-    nl = 1
-    w = 1
-    while w < top:
-        nl += 1
-        w *= 2
-    gx, gy = a.shape
-    out = np.empty((nl, gx, gy), dtype=np.uint8)
-    out[0] = a
-    w = 1
-    for lev in range(1, nl):
-        prev, cur = out[lev - 1], out[lev]
-        for i in range(gx):
-            for j in range(gy):
-                v = prev[i, j]
-                if i + w < gx and prev[i + w, j] > v:
-                    v = prev[i + w, j]
-                cur[i, j] = v
-        for i in range(gx):
-            for j in range(gy - w):
-                if cur[i, j + w] > cur[i, j]:
-                    cur[i, j] = cur[i, j + w]
-        w *= 2
-    return out
-
-
-def max_pool(a: NDArray[np.uint8], top: int) -> NDArray[np.uint8]:
-    """:func:`max_pool_numpy`, compiled (the same levels, byte for byte)."""
-    return _max_pool(np.ascontiguousarray(a, dtype=np.uint8), int(top))
