@@ -309,11 +309,11 @@ def run_child(
     split_: bool = False,
 ) -> dict:
     env = dict(os.environ, PYTHONPATH=str(tree))
-    # the tree's own copy of this script where it knows the log (module paths move between
-    # revisions); else this one, on that tree
-    own = tree / "experiments" / Path(__file__).name
+    # this script (the same measurements on both trees) where the tree has the module
+    # layout it imports (issue 32's); else the tree's own copy, which knows that layout
     script = Path(__file__).resolve()
-    if own.is_file() and (log == "corridor" or f'"{log}"' in own.read_text()):
+    own = tree / "experiments" / Path(__file__).name
+    if not (tree / "fgslam" / "io" / "formats.py").is_file() and own.is_file():
         script = own
     cmd = [sys.executable, str(script), "--child", "--logs", log]
     cmd += ["--backends", *backends]
