@@ -54,15 +54,16 @@ def test_a_short_freeze_is_held_and_spread():
 
 def test_a_freeze_longer_than_stale_is_a_stop():
     """Repeats from 1.4 s after the last change at 1.0 s: held while within ``stale`` (1 s);
-    the repeat at 2.6 s shows a stop: the pending repeat's zero sample and the held scans come
-    out as they were, then the repeat's own zero sample; no span is counted. Events held at
-    the end of the log are flushed as they were."""
+    the repeat at 2.6 s shows a stop: a zero sample at each held repeat (1.4 and 1.8 s) among
+    the held scans, as they were, then the repeat's own zero sample (the standing robot's
+    odometry keeps its samples: no gap); no span is counted. Events held at the end of the
+    log are flushed as they were."""
     hold, notes = _hold(stale=1.0)
     hold.odometry(1.0, MOVE)
     assert hold.odometry(1.4, np.zeros(3)) == [] and hold.event(_scan(1.45)) == []
     assert hold.odometry(1.8, np.zeros(3)) == [] and hold.event(_scan(1.85)) == []
     out = hold.odometry(2.6, np.zeros(3))
-    assert _kinds(out) == [("L", 1.45), ("O", 1.8), ("L", 1.85), ("O", 2.6)]
+    assert _kinds(out) == [("O", 1.4), ("L", 1.45), ("O", 1.8), ("L", 1.85), ("O", 2.6)]
     assert all(e.ticks_right == e.ticks_left == 0 for e in out if isinstance(e, OdometryEvent))
     assert notes["stale_spans"] == 0
     # the stop goes on: held again (the last sample is recent), flushed at the end
@@ -216,3 +217,24 @@ def test_a_second_read_counts_each_record_once(tmp_path):
         assert _kinds(log) == first and log.problems.summary() == notes
         assert notes["odometry"]["stale_spans"] == 1
     assert notes["skipped_by_reason"] == {"unknown record NEFF": 1}
+
+
+@pytest.mark.parametrize("ros1", [True, False])
+def test_a_standing_robots_odometry_keeps_its_samples(tmp_path, ros1):
+    """The robot stands for the last 3 s of the bag while /odom keeps reporting every 0.1 s:
+    each of those records gives its zero sample (they were once swallowed by the stale hold
+    but for one every ``stale`` s, which read as odometry holes of up to ``stale`` s between
+    the scans of a standing robot): every scan lies within 0.1 s of a sample, but those of
+    the last ``stale`` s, still held when the log ends and flushed as they were."""
+    path = _bag(tmp_path, ros1, "stand", n=40, frozen=range(50, 80), with_range=False)
+    events = list(open_log(path))
+    end = max(e.t for e in events)
+    last, worst = None, 0.0
+    for e in events:
+        if isinstance(e, OdometryEvent):
+            last = e.t
+        elif isinstance(e, LaserScan) and last is not None and e.t < end - OdometryLimits().stale:
+            worst = max(worst, e.t - last)
+    assert worst <= 0.1 + 1e-6
+    zero = [e for e in events if isinstance(e, OdometryEvent) and e.t > 6.0]
+    assert len(zero) >= 15 and all(e.ticks_right == e.ticks_left == 0 for e in zero)

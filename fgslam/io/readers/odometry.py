@@ -157,7 +157,8 @@ class StaleOdometryHold:
       among its samples, in time order; counted in ``notes`` as ``stale_spans`` and
       ``stale_seconds`` (s, the span from the last change to the catch-up);
     - when it repeats for longer than ``stale`` s, the robot stood still (or it is a hole):
-      the repeat's zero sample and the held events are delivered as they were.
+      each held repeat's zero sample and the held events are delivered as they were, in time
+      order (a standing robot's odometry keeps coming: no gap in its samples, no hole).
 
     A robot that stops and starts again within ``stale`` s is thus seen creeping over the
     stop; its first increment is small. Events leave in the order of their stamps, which never
@@ -174,6 +175,7 @@ class StaleOdometryHold:
         notes.setdefault("stale_seconds", 0.0)
         self.held: list[Event] = []
         self.repeat_t: float | None = None  # s, stamp of the last repeat held
+        self.repeats: list[float] = []  # s, stamps of the held repeats that are records
         self.last_out = -math.inf  # s, stamp of the last event delivered
 
     def holding(self, t: float) -> bool:
@@ -190,6 +192,8 @@ class StaleOdometryHold:
             return self._motion(t, inc)
         if self.holding(t):
             self.repeat_t = t
+            if sample:
+                self.repeats.append(t)
             return []
         if not sample:
             return self._release()
@@ -219,9 +223,23 @@ class StaleOdometryHold:
         return self._release()
 
     def _stood_still(self) -> list[Event]:
-        """The pending repeat was a stop: its zero sample, then the held events."""
-        out = self._motion(self.repeat_t, np.zeros(3)) if self.repeat_t is not None else []
-        return out + self._release()
+        """The pending repeats were a stop: a zero sample at each held repeat record among the
+        held events, in time order (a sample before an event of the same stamp)."""
+        out: list[Event] = []
+        held = sorted(self.held, key=lambda e: e.t)  # stable: the held order at equal stamps
+        reps = list(self.repeats)
+        i = j = 0
+        while i < len(reps) or j < len(held):
+            if j == len(held) or (i < len(reps) and reps[i] <= held[j].t):
+                out += self.drive.ticks(reps[i], np.zeros(3), after=self.last_out, hole=math.inf)
+                i += 1
+            else:
+                out.append(held[j])
+                j += 1
+            if out:
+                self.last_out = max(self.last_out, out[-1].t)
+        self.held, self.repeat_t, self.repeats = [], None, []
+        return out
 
     def _motion(self, t: float, inc: Increment) -> list[Event]:
         """The samples of ``inc`` ending at ``t`` s (spread back over the held span) and the
@@ -233,13 +251,13 @@ class StaleOdometryHold:
             self.notes["stale_spans"] += 1
             self.notes["stale_seconds"] = round(self.notes["stale_seconds"] + t - start, 3)
         out = sorted([*ticks, *self.held], key=lambda e: (e.t, not isinstance(e, OdometryEvent)))
-        self.held, self.repeat_t = [], None
+        self.held, self.repeat_t, self.repeats = [], None, []
         if out:
             self.last_out = max(self.last_out, out[-1].t)
         return out
 
     def _release(self) -> list[Event]:
-        out, self.held, self.repeat_t = self.held, [], None
+        out, self.held, self.repeat_t, self.repeats = self.held, [], None, []
         if out:
             self.last_out = max(self.last_out, out[-1].t)
         return out

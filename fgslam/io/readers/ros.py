@@ -571,6 +571,7 @@ class RosBag(Source):
                             late(conn.topic, count[conn.topic], t, last)
                         else:
                             last = max(last, t)
+                            last_odo_in = t  # a gap after the first record is a hole too
                         continue
                     if inc is None:  # a jump: dropped (OdometryJumps)
                         pr.note("odometry", f"{conn.topic} at t={t:.6f}: {why}", skipped=True)
