@@ -53,7 +53,8 @@ def segment_scan(
     the same in plain Python, and makes the same decisions.
     """
     n = len(r)
-    xs, ys = r * np.cos(phi), r * np.sin(phi)  # the reference's points, bit for bit
+    with np.errstate(invalid="ignore"):  # an infinite range at a zero sine: invalid anyway
+        xs, ys = r * np.cos(phi), r * np.sin(phi)  # the reference's points, bit for bit
     valid = np.isfinite(r) & (r > 0) & (r <= params.max_range)
     near = sonar_near if sonar_near is not None else np.full(n, -1)
     ndist = sonar_dist if sonar_dist is not None else np.zeros(n)
@@ -96,7 +97,8 @@ def segment_scan_reference(
     """
     n = len(r)
     # plain Python floats: the growing loop is scalar work, and numpy scalars are slow
-    xs, ys = (r * np.cos(phi)).tolist(), (r * np.sin(phi)).tolist()
+    with np.errstate(invalid="ignore"):  # an infinite range at a zero sine: invalid anyway
+        xs, ys = (r * np.cos(phi)).tolist(), (r * np.sin(phi)).tolist()
     rs = r.tolist()
     valid = (np.isfinite(r) & (r > 0) & (r <= params.max_range)).tolist()
     near = (sonar_near if sonar_near is not None else np.full(n, -1)).tolist()
