@@ -498,3 +498,52 @@ def read_covariances(path: str | Path) -> tuple[NDArray[np.float64], NDArray[np.
         raise ValueError("no covariances (timestamp and a 3x3 covariance per line)")
     data = np.array(rows, dtype=float)
     return data[:, 0], data[:, 1:].reshape(-1, 3, 3)
+
+
+def loop_agreement(
+    closures: list[dict],
+    kf_times: ArrayLike,
+    ref_t: ArrayLike,
+    ref_poses: ArrayLike,
+    xy_tol: float = 0.2,
+    theta_tol_deg: float = 2.0,
+) -> dict[str, float | int]:
+    """How many accepted loop closures (report.json's attempts: "from"/"to" keyframe indices,
+    "pose" the matched x, y, theta of "to" in the frame of "from"; m, rad) agree with the
+    reference: the reference poses (``ref_t`` s, (n, 3) world) interpolated at the two
+    keyframes' times ``kf_times`` give the true relative pose; a closure agrees when it is
+    within ``xy_tol`` m and ``theta_tol_deg`` deg of it. Closures whose keyframes lie outside
+    the reference's time span are not checked."""
+    t = np.asarray(kf_times, dtype=float)
+    rt = np.asarray(ref_t, dtype=float)
+    acc = [c for c in closures if c.get("accepted") and c.get("pose") is not None]
+    pairs = [
+        (int(c["from"]), int(c["to"]), c["pose"])
+        for c in acc
+        if 0 <= int(c["from"]) < len(t) and 0 <= int(c["to"]) < len(t)
+    ]
+    inside = [
+        p
+        for p in pairs
+        if len(rt) >= 2 and rt[0] <= min(t[p[0]], t[p[1]]) <= max(t[p[0]], t[p[1]]) <= rt[-1]
+    ]
+    out: dict[str, float | int] = {
+        "accepted": len(acc),
+        "checked": len(inside),
+        "agree": 0,
+        "xy_tol_m": xy_tol,
+        "theta_tol_deg": theta_tol_deg,
+    }
+    if not inside:
+        return out
+    j = np.array([p[0] for p in inside])
+    k = np.array([p[1] for p in inside])
+    ref = interpolate_poses(rt, ref_poses, t)
+    true = _relative_poses(ref, j, k)
+    got = np.array([p[2] for p in inside], dtype=float).reshape(-1, 3)
+    dxy = np.hypot(got[:, 0] - true[:, 0], got[:, 1] - true[:, 1])
+    dth = np.degrees(np.abs(wrap_angles(got[:, 2] - true[:, 2])))
+    out["agree"] = int(np.sum((dxy <= xy_tol) & (dth <= theta_tol_deg)))
+    out["median_error_m"] = round(float(np.median(dxy)), 4)
+    out["median_error_deg"] = round(float(np.median(dth)), 3)
+    return out

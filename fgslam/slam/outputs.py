@@ -204,6 +204,10 @@ def report_dict(res: SlamResult, true_map: dict[str, Any] | None = None) -> dict
             "rejected": len(res.loop_closures) - len(acc),
             "attempts": res.loop_closures,
         }
+        if res.has_truth:  # how many of the accepted ones the reference confirms
+            rep["loop_closures"]["against_reference"] = evaluation.loop_agreement(
+                res.loop_closures, res.times, res.truth_t, res.truth
+            )
     if res.calibration is not None:
         rep["calibration"] = dict(res.calibration)
     if res.stats.get("partial"):
