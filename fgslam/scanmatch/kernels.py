@@ -110,30 +110,12 @@ def nearest_within_numpy(
 
 
 @numba.njit(cache=True, nogil=True)
-def _nearest(pts, lo0, lo1, size, ny, nx, keys, starts, order, x, y, dmax):  # pragma: no cover
+def _nearest(pts, lo, size, ny, nx, keys, starts, order, x, y, dmax, bd, bj):  # pragma: no cover
     """Index of the point nearest to (x, y) closer than dmax (-1 if none), and its squared
-    distance. Ties go to the lower index."""
-    best, bd = -1, dmax * dmax
-    rings = math.ceil(dmax / size)
-    fx, fy = (x - lo0) / size, (y - lo1) / size
-    if not (fx > -rings - 1.0 and fx < nx + rings + 1.0):  # also NaN
-        return best, bd
-    if not (fy > -rings - 1.0 and fy < ny + rings + 1.0):
-        return best, bd
-    ix, iy = math.floor(fx), math.floor(fy)
-    for cx in range(max(ix - rings, 0), min(ix + rings, nx - 1) + 1):
-        for cy in range(max(iy - rings, 0), min(iy + rings, ny - 1) + 1):
-            key = cx * ny + cy
-            t = np.searchsorted(keys, key)
-            if t == keys.shape[0] or keys[t] != key:
-                continue
-            for u in range(starts[t], starts[t + 1]):
-                j = order[u]
-                dx, dy = pts[j, 0] - x, pts[j, 1] - y
-                d2 = dx * dx + dy * dy
-                if d2 < bd or (d2 == bd and best >= 0 and j < best):
-                    best, bd = j, d2
-    return best, bd
+    distance: :func:`_k_nearest` with k = 1 (``bd``, ``bj`` its one-element buffers)."""
+    if _k_nearest(pts, lo, size, ny, nx, keys, starts, order, x, y, dmax, 1, bd, bj):
+        return bj[0], bd[0]
+    return -1, dmax * dmax
 
 
 @numba.njit(cache=True, nogil=True)
@@ -141,9 +123,10 @@ def _nearest_all(pts, lo, size, ny, nx, keys, starts, order, x, dmax):  # pragma
     n = x.shape[0]
     d = np.empty(n)
     j = np.empty(n, dtype=np.int64)
+    buf_d, buf_j = np.empty(1), np.empty(1, dtype=np.int64)
     for i in range(n):
         b, bd = _nearest(
-            pts, lo[0], lo[1], size, ny, nx, keys, starts, order, x[i, 0], x[i, 1], dmax
+            pts, lo, size, ny, nx, keys, starts, order, x[i, 0], x[i, 1], dmax, buf_d, buf_j
         )
         if b < 0:
             d[i], j[i] = np.inf, pts.shape[0]
@@ -172,11 +155,12 @@ def _correspond(
     idx = np.empty(n, dtype=np.int64)
     jj = np.empty(n, dtype=np.int64)
     r = np.empty(n)
+    buf_d, buf_j = np.empty(1), np.empty(1, dtype=np.int64)
     m = 0
     for i in range(n):
         x = c * q[i, 0] - s * q[i, 1] + pose[0]
         y = s * q[i, 0] + c * q[i, 1] + pose[1]
-        j, _ = _nearest(pts, lo[0], lo[1], size, ny, nx, keys, starts, order, x, y, dmax)
+        j, _ = _nearest(pts, lo, size, ny, nx, keys, starts, order, x, y, dmax, buf_d, buf_j)
         if j < 0 or not np.isfinite(normals[j, 0]):
             continue
         idx[m], jj[m] = i, j
