@@ -75,31 +75,16 @@ print(json.dumps({"import_s": t1 - t0, "first_call_s": t2 - t1}))
 
 
 def box_scans(seed: int = 0):
-    """A Reference from a simulated scan of a box room with a pillar (the reference at a
-    random pose), a query scan from up to 0.3 m and 0.1 rad away, the query's true pose in
-    the reference's frame, and the MatchParams."""
+    """A Reference of the box room's first scan (fgslam.sim.scenes.box_room_scans), the
+    query scan, the query's true pose in the reference's frame, the MatchParams and the
+    random generator."""
     from fgslam.config import load_config
-    from fgslam.scanmatch import MatchParams, Reference, scan_points
-    from fgslam.sim.raycast import raycast
+    from fgslam.scanmatch import MatchParams, Reference
+    from fgslam.sim.scenes import box_room_scans
 
-    box = [(0, 0, 8, 0), (8, 0, 8, 5), (8, 5, 0, 5), (0, 5, 0, 0), (3, 2.5, 3.5, 3.0)]
-    segs = np.asarray(box, dtype=float)
-    cfg = load_config()
-    bearings = cfg.laser.bearings
-    rng = np.random.default_rng(seed)
-
-    def scan(pose):
-        r = raycast(np.asarray(pose[:2]), pose[2] + bearings, segs)
-        return scan_points(r + rng.normal(0, 0.01, r.shape), bearings, max_range=20.0)
-
-    a = np.array([rng.uniform(1.5, 2.5), rng.uniform(1.5, 3.5), rng.uniform(-np.pi, np.pi)])
-    b = a + np.array([*rng.uniform(-0.3, 0.3, 2), rng.uniform(-0.1, 0.1)])
-    params = MatchParams.from_config(cfg)
-    ref = Reference.build(scan(a), params)
-    c, s = np.cos(a[2]), np.sin(a[2])
-    d = b[:2] - a[:2]
-    truth = np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1], b[2] - a[2]])
-    return ref, scan(b), truth, params, rng
+    ref_points, query, truth, rng = box_room_scans(seed)
+    params = MatchParams.from_config(load_config())
+    return Reference.build(ref_points, params), query, truth, params, rng
 
 
 def frontend_inputs(seed: int = 0):

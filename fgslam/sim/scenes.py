@@ -179,3 +179,31 @@ def park_run(seed: int, wrong: float = 0.0) -> tuple[VictoriaPark, np.ndarray, i
                 v[i] = type(s)(s.pose, other, s.xy, s.cov)
                 moved += 1
     return data, truth, moved
+
+
+BOX_ROOM = ((0, 0, 8, 0), (8, 0, 8, 5), (8, 5, 0, 5), (0, 5, 0, 0), (3, 2.5, 3.5, 3.0))
+
+
+def box_room_scans(seed: int = 0) -> tuple:
+    """Two simulated laser scans (the shipped laser's bearings, 1 cm range noise; robot-frame
+    points, m) of an 8 x 5 m box room with a pillar (:data:`BOX_ROOM`, segments x0 y0 x1
+    y1): the reference's from a random pose, the query's from up to 0.3 m and 0.1 rad away.
+    Returns (reference points, query points, the query's true pose in the reference's frame
+    (x, y, theta), the random generator) for scan-matcher tests and benchmarks."""
+    from fgslam.scanmatch import scan_points
+    from fgslam.sim.raycast import raycast
+
+    segs = np.asarray(BOX_ROOM, dtype=float)
+    bearings = load_config().laser.bearings
+    rng = np.random.default_rng(seed)
+
+    def scan(pose):
+        r = raycast(np.asarray(pose[:2]), pose[2] + bearings, segs)
+        return scan_points(r + rng.normal(0, 0.01, r.shape), bearings, max_range=20.0)
+
+    a = np.array([rng.uniform(1.5, 2.5), rng.uniform(1.5, 3.5), rng.uniform(-np.pi, np.pi)])
+    b = a + np.array([*rng.uniform(-0.3, 0.3, 2), rng.uniform(-0.1, 0.1)])
+    c, s = math.cos(a[2]), math.sin(a[2])
+    d = b[:2] - a[:2]
+    truth = np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1], b[2] - a[2]])
+    return scan(a), scan(b), truth, rng
