@@ -163,6 +163,7 @@ def write_bag(
     record=None,
     frozen: range = range(0),
     shift: tuple[int, float] | None = None,
+    paused: range = range(0),
 ) -> None:
     """A bag with /scan (181 beams over 180 deg), /odom (two messages per scan, the robot
     advancing 5 cm and turning 0.02 rad per message, :func:`bag_drive`) and /sonar
@@ -172,7 +173,8 @@ def write_bag(
     while the robot drove on); ``shift`` = (k, dx): odometry messages k and after dx m off in
     x (the odometry jumped and continued from there); ``header(topic, k, t)`` / ``record(topic,
     k, t)``: the header stamp / record time of the k-th message (from 0) of a topic instead of
-    ``t``."""
+    ``t``; ``paused``: the odometry messages in it are left out (the stream paused while the
+    robot drove on)."""
     from rosbags.typesys import Stores, get_typestore
 
     ts = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
@@ -211,8 +213,9 @@ def write_bag(
             if shift is not None and k >= shift[0]:
                 x += shift[1]  # the odometry jumped and stayed
             pose = g["Pose"](position=g["Point"](x=x, y=y, z=0.0), orientation=q)
-            odom = odometry_message(T, hdr(t, "odom"), "base_link", pose)
-            put(co, "/odom", t, ser(odom, "nav_msgs/msg/Odometry"))
+            if k not in paused:
+                odom = odometry_message(T, hdr(t, "odom"), "base_link", pose)
+                put(co, "/odom", t, ser(odom, "nav_msgs/msg/Odometry"))
             if k % 2 == 0:
                 continue
             stamp = t - 0.5 if k == backwards_scan else t

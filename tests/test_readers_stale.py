@@ -18,6 +18,7 @@ from fgslam.io.readers.sanity import OdometryLimits
 
 CFG = derived_config(5)
 MOVE = (0.15, 0.0, 0.0)  # m, m, rad: three samples of 5 cm
+NO_GAP = {"gap_spans": 0, "gap_seconds": 0.0}
 
 
 def _hold(stale: float = 1.0) -> tuple[StaleOdometryHold, dict]:
@@ -35,58 +36,68 @@ def _kinds(events) -> list[tuple[str, float]]:
 
 def test_a_short_freeze_is_held_and_spread():
     """Repeats at 1.1 and 1.2 s (the last change at 1.0 s, within ``stale``): the repeats and
-    the scans after them are held; the catch-up at 1.3 s is spread over the span after the
-    last delivered event (1.05 s) with the held scans among its samples; one span of 0.3 s."""
+    the scans after them are held (so is the scan of 1.05 s: every event waits for the record
+    after it); the catch-up at 1.3 s is spread over the span since the last change with the
+    held scans among its samples; one span of 0.3 s."""
     hold, notes = _hold()
-    assert notes == {"stale_spans": 0, "stale_seconds": 0.0}
+    assert notes == {"stale_spans": 0, "stale_seconds": 0.0, **NO_GAP}
     assert _kinds(hold.odometry(1.0, (0.05, 0.0, 0.0))) == [("O", 1.0)]
-    assert _kinds(hold.event(_scan(1.05))) == [("L", 1.05)]
+    assert hold.event(_scan(1.05)) == []
     for t in (1.1, 1.2):
         assert hold.odometry(t, np.zeros(3)) == []
         assert hold.event(_scan(t + 0.05)) == []
     out = hold.odometry(1.3, MOVE)
-    assert _kinds(out) == [("O", 1.133333), ("L", 1.15), ("O", 1.216667), ("L", 1.25), ("O", 1.3)]
+    assert _kinds(out) == [
+        ("L", 1.05),
+        ("O", 1.1),
+        ("L", 1.15),
+        ("O", 1.2),
+        ("L", 1.25),
+        ("O", 1.3),
+    ]
     odo = [e for e in out if isinstance(e, OdometryEvent)]
     assert [(e.ticks_right, e.ticks_left) for e in odo] == [(500, 500)] * 3  # 0.1 mm/tick
-    assert notes == {"stale_spans": 1, "stale_seconds": pytest.approx(0.3)}
+    assert notes == {"stale_spans": 1, "stale_seconds": pytest.approx(0.3), **NO_GAP}
     assert hold.held == [] and hold.repeat_t is None
 
 
 def test_a_freeze_longer_than_stale_is_a_stop():
     """Repeats from 1.4 s after the last change at 1.0 s: held while within ``stale`` (1 s);
-    the repeat at 2.6 s shows a stop: a zero sample at each held repeat (1.4 and 1.8 s) among
-    the held scans, as they were, then the repeat's own zero sample (the standing robot's
-    odometry keeps its samples: no gap); no span is counted. Events held at the end of the
-    log are flushed as they were."""
+    the repeat at 2.6 s shows a stop: zero samples up to each held repeat (1.4 and 1.8 s) and
+    to the repeat itself, at most ``hole / 2`` s apart (2.2 s fills in), among the held scans
+    (the standing robot's odometry keeps its samples: no gap); no span is counted. Events held
+    at the end of the log are flushed as they were."""
     hold, notes = _hold(stale=1.0)
     hold.odometry(1.0, MOVE)
     assert hold.odometry(1.4, np.zeros(3)) == [] and hold.event(_scan(1.45)) == []
     assert hold.odometry(1.8, np.zeros(3)) == [] and hold.event(_scan(1.85)) == []
     out = hold.odometry(2.6, np.zeros(3))
-    assert _kinds(out) == [("O", 1.4), ("L", 1.45), ("O", 1.8), ("L", 1.85), ("O", 2.6)]
+    assert _kinds(out) == [("O", 1.4), ("L", 1.45), ("O", 1.8), ("L", 1.85), ("O", 2.2), ("O", 2.6)]
     assert all(e.ticks_right == e.ticks_left == 0 for e in out if isinstance(e, OdometryEvent))
     assert notes["stale_spans"] == 0
     # the stop goes on: held again (the last sample is recent), flushed at the end
     assert hold.odometry(3.0, np.zeros(3)) == [] and hold.event(_scan(3.05)) == []
     assert _kinds(hold.flush()) == [("L", 3.05)]
-    assert notes == {"stale_spans": 0, "stale_seconds": 0.0}
+    assert notes == {"stale_spans": 0, "stale_seconds": 0.0, **NO_GAP}
 
 
 def test_an_event_ends_a_hold_and_scan_fields_give_no_zero_samples():
     """A scan beyond ``stale`` after a repeat shows the stop itself (the repeat's zero sample,
-    the held, then the scan). A repeat in a scan's odometry field (``sample=False``) that is a
-    stop releases the held events without zero samples. An event placed without the
-    odometry (a truth pose) waits behind held events but does not start a hold."""
+    the held); the scan then waits for the next record. A repeat in a scan's odometry field
+    (``sample=False``) that is a stop releases the held events without zero samples. An event
+    placed without the odometry (a truth pose) waits behind held events but does not start a
+    hold."""
     hold, notes = _hold(stale=1.0)
     hold.odometry(1.0, MOVE)
     assert hold.odometry(1.5, np.zeros(3)) == [] and hold.event(_scan(1.55)) == []
-    assert _kinds(hold.event(_scan(2.2))) == [("O", 1.5), ("L", 1.55), ("L", 2.2)]
+    assert _kinds(hold.event(_scan(2.2))) == [("O", 1.5), ("L", 1.55)]
+    assert _kinds(hold.flush()) == [("L", 2.2)]
 
     hold, notes = _hold(stale=1.0)
     hold.odometry(1.0, MOVE, sample=False)
     assert hold.odometry(1.5, np.zeros(3), sample=False) == [] and hold.event(_scan(1.5)) == []
     assert _kinds(hold.odometry(2.2, np.zeros(3), sample=False)) == [("L", 1.5)]
-    assert _kinds(hold.event(_scan(2.2))) == [("L", 2.2)]  # the last change is still 1.0 s
+    assert hold.event(_scan(2.2)) == [] and _kinds(hold.flush()) == [("L", 2.2)]
 
     hold, notes = _hold(stale=1.0)
     hold.odometry(1.0, MOVE)
@@ -134,8 +145,8 @@ def test_ros_frozen_odometry_is_held_and_spread(tmp_path, ros1):
     """/odom repeats its pose of 1.5 s at 1.6-1.9 s while the robot drives on, then catches up
     at 2.0 s (25 cm, 0.1 rad): the scans and range readings of 1.75 and 1.95 s are held and
     come out among the catch-up's samples, so the odometry at every scan is the clean bag's;
-    one span of 0.5 s is counted, with the bound in the notes. Without the hold (stale = 0)
-    the scan of 1.95 s sees the robot 20 cm behind."""
+    one span of 0.5 s is counted, with the bound in the notes. Without the stale hold (stale
+    = 0) the scans of the freeze see the robot standing, 10 cm behind at 1.75 s."""
     frozen = _bag(tmp_path, ros1, "frozen", frozen=range(6, 10))
     log = open_log(frozen, range_topics=["/sonar"])
     events = list(log)
@@ -150,7 +161,7 @@ def test_ros_frozen_odometry_is_held_and_spread(tmp_path, ros1):
         assert np.allclose(_odometry_at(events, kind), _odometry_at(clean, kind), atol=1e-3)
     old = list(open_log(frozen, range_topics=["/sonar"], limits=OdometryLimits(stale=0.0)))
     err = np.hypot(*(_odometry_at(old)[:, :2] - _odometry_at(clean)[:, :2]).T)
-    assert err.max() > 0.15
+    assert err.max() > 0.08
 
 
 @pytest.mark.parametrize("ros1", [True, False])
@@ -167,6 +178,72 @@ def test_ros_odometry_frozen_beyond_stale_is_a_stop(tmp_path, ros1):
     odo = _odometry_at(events)
     assert np.allclose(odo[25:], odo[24], atol=1e-4)  # scan 24 at 5.95 s, the last change 5.9 s
     assert not np.allclose(odo[24], odo[23], atol=1e-2)
+
+
+def _sample_gaps(events) -> list[float]:
+    """The gaps (s) between consecutive odometry samples with an event between them: what the
+    factors would read as odometry holes when longer than the hole tolerance."""
+    gaps, last, between = [], None, False
+    for e in events:
+        if isinstance(e, OdometryEvent):
+            if last is not None and between:
+                gaps.append(e.t - last)
+            last, between = e.t, False
+        else:
+            between = True
+    return gaps
+
+
+def test_a_gap_is_spread_and_leaves_no_hole():
+    """A pose stream quiet from 1.0 to 3.0 s while scans come every 0.2 s: the scans wait for
+    the record of 3.0 s, whose 15 cm are spread over the gap in samples at most ``hole / 2`` s
+    apart (zero samples filling in), the scans among them; one gap span of 2 s, no sample gap
+    longer than 0.5 s. A scan more than ``spread`` s after the last record ends the hold as it
+    was: the record after it is stamped at its end (a hole the factors see)."""
+    hold, notes = _hold()
+    hold.odometry(1.0, MOVE)
+    for k in range(1, 10):
+        assert hold.event(_scan(1.0 + 0.2 * k)) == []
+    out = hold.odometry(3.0, MOVE)
+    assert [e.t for e in out] == sorted(e.t for e in out)
+    assert sum(isinstance(e, LaserScan) for e in out) == 9
+    odo = [e for e in out if isinstance(e, OdometryEvent)]
+    assert [round(e.t, 6) for e in odo] == [1.5, 2.0, 2.5, 3.0]
+    assert sum(e.ticks_right for e in odo) == 1500  # the 15 cm, 0.1 mm per tick
+    assert max(_sample_gaps(out)) <= 0.5 + 1e-9
+    assert notes["gap_spans"] == 1 and notes["gap_seconds"] == pytest.approx(2.0)
+
+    hold, notes = _hold()
+    hold.odometry(1.0, MOVE)
+    assert hold.event(_scan(1.5)) == []
+    assert _kinds(hold.event(_scan(1.0 + OdometryLimits().spread + 0.5))) == [
+        ("L", 1.5),
+        ("L", 6.5),
+    ]
+    assert _kinds(hold.odometry(7.0, MOVE)) == [("O", 7.0)] * 3
+    assert notes["gap_spans"] == 0
+
+
+@pytest.mark.parametrize("ros1", [True, False])
+def test_ros_paused_odometry_is_spread(tmp_path, ros1):
+    """/odom pauses for 1.2 s (messages 6-17 left out) while the robot drives on: the scans of
+    the pause wait for the message after it and come out among its samples, so the odometry
+    at every scan is the clean bag's (interpolated: the drive is steady) and no sample gap is
+    left for a hole; one gap span counted, no hole. With ``spread`` 0 (the hold off), the
+    scans of the pause see the robot standing and a hole is counted."""
+    paused = _bag(tmp_path, ros1, "paused", paused=range(6, 18))
+    events = list(log := open_log(paused, range_topics=["/sonar"]))
+    notes = log.problems.notes["odometry"]
+    assert notes["gap_spans"] == 1 and notes["holes"] == 0
+    assert notes["gap_seconds"] == pytest.approx(1.3)
+    assert max(_sample_gaps(events)) < OdometryLimits().hole
+    clean = list(open_log(_bag(tmp_path, ros1, "clean"), range_topics=["/sonar"]))
+    assert np.allclose(_odometry_at(events), _odometry_at(clean), atol=0.03)
+    off = OdometryLimits(spread=0.0, stale=0.0)
+    old = list(log := open_log(paused, range_topics=["/sonar"], limits=off))
+    assert log.problems.notes["odometry"]["holes"] == 1
+    err = np.hypot(*(_odometry_at(old)[:, :2] - _odometry_at(clean)[:, :2]).T)
+    assert err.max() > 0.4
 
 
 def _carmen_twin(path, n: int, frozen: range) -> None:

@@ -51,8 +51,9 @@ events are never reordered and their stamps never go backwards.
 **Stale odometry** (raw logs; MIT CSAIL's FLASER odometry fields freeze for 0.6-1.1 s while
 the robot turns): an ``ODOM`` line that repeats the last pose, or a scan whose odometry field
 does (logs without ``ODOM`` lines; such a scan gives no zero sample), and the events after it
-are held and spread by :class:`~fgslam.io.readers.common.StaleOdometryHold` (``stale_spans``,
-``stale_seconds`` in the odometry notes).
+are held and spread by :class:`~fgslam.io.readers.odometry.StaleOdometryHold` (``stale_spans``,
+``stale_seconds`` in the odometry notes); so is a pause of the ``ODOM`` lines of up to
+``spread`` s (``gap_spans``, ``gap_seconds``), longer ones counted as holes.
 """
 
 from __future__ import annotations
@@ -342,6 +343,9 @@ class CarmenLog(Source):
         n_scans = 0
         # raw logs: events held while the odometry repeats its last pose (stale odometry)
         hold = StaleOdometryHold(drive, limits, notes)
+        # a gap in a pose stream is spread by the hold up to `spread` s; corrected logs' ODOM
+        # lines restart at every scan and are not held
+        hole = limits.hole if self.mode == "corrected" else max(limits.hole, limits.spread)
 
         for lineno, rec in self._records():
             tag = rec["tag"]
@@ -437,7 +441,7 @@ class CarmenLog(Source):
                 yield from hold.odometry(t, carried, sample=False)
                 carried = np.zeros(3)
                 last_odo_t, in_hole = t, end_hole(t)
-            if last_odo_t > -math.inf and t - last_odo_t > limits.hole:
+            if last_odo_t > -math.inf and t - last_odo_t > hole:
                 if not in_hole:  # a hole: no odometry for too long while scans come
                     notes["holes"] += 1
                     if len(notes["holes_first"]) < 10:

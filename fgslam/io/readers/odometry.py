@@ -110,12 +110,15 @@ class VirtualDrive:
         inc: tuple[float, float, float],
         after: float = -math.inf,
         hole: float = math.inf,
+        spacing: float = math.inf,
     ) -> list[OdometryEvent]:
         """The odometry samples of one increment ending at time ``t``, stamped no earlier
         than ``after`` (the last event delivered); after a gap longer than ``hole`` s they
-        are all stamped ``t`` (the motion's time is unknown: the gap stays visible). An
-        increment that would take more than :data:`MAX_SAMPLES` samples is a
-        :class:`ReaderError` (readers bound motion before they get here)."""
+        are all stamped ``t`` (the motion's time is unknown: the gap stays visible). Spread
+        samples lie at most ``spacing`` s apart: zero samples fill the span where the motion
+        takes fewer samples, its own samples evenly among them. An increment that would take
+        more than :data:`MAX_SAMPLES` samples is a :class:`ReaderError` (readers bound motion
+        before they get here)."""
         dx, dy, dth = (float(v) for v in inc)
         dist = math.hypot(dx, dy)
         if not (dist <= MAX_SAMPLES * VIRTUAL_STEP and abs(dth) <= MAX_SAMPLES * VIRTUAL_TURN):
@@ -131,13 +134,18 @@ class VirtualDrive:
         if gap > hole:
             t0 = t
         self.t = t
+        m = n
+        if t > t0 and math.isfinite(spacing):
+            m = max(n, min(MAX_SAMPLES, math.ceil((t - t0) / spacing - 1e-9)))
+        # slot j (of m) carries a motion sample where floor(j n / m) steps up
+        moving = [(j + 1) * n // m > j * n // m for j in range(m)]
         return [
             self._tick(
-                t0 + (t - t0) * (i + 1) / n if i < n - 1 else t,
-                c + 0.5 * h * self.D,
-                c - 0.5 * h * self.D,
+                t0 + (t - t0) * (j + 1) / m if j < m - 1 else t,
+                (c + 0.5 * h * self.D) if moving[j] else 0.0,
+                (c - 0.5 * h * self.D) if moving[j] else 0.0,
             )
-            for i in range(n)
+            for j in range(m)
         ]
 
 
@@ -157,26 +165,43 @@ class StaleOdometryHold:
       among its samples, in time order; counted in ``notes`` as ``stale_spans`` and
       ``stale_seconds`` (s, the span from the last change to the catch-up);
     - when it repeats for longer than ``stale`` s, the robot stood still (or it is a hole):
-      each held repeat's zero sample and the held events are delivered as they were, in time
-      order (a standing robot's odometry keeps coming: no gap in its samples, no hole).
+      zero samples up to each held repeat record (at most ``hole / 2`` s apart) and the held
+      events are delivered in time order (a standing robot's odometry keeps coming: no gap in
+      its samples, no hole).
 
     A robot that stops and starts again within ``stale`` s is thus seen creeping over the
-    stop; its first increment is small. Events leave in the order of their stamps, which never
-    go below the last one delivered. Feed every odometry record to :meth:`odometry`, every
-    other event to :meth:`event`, and call :meth:`flush` at the end of the log.
+    stop; its first increment is small.
+
+    Gaps: every other event waits for the odometry record after it (up to ``spread`` s after
+    the last record), and that record's samples are spread over the span since the last event
+    delivered, the held events among them: a scan's odometry is interpolated between the
+    records around it. A pose stream that pauses (``intel.orig.bag``'s /odom is quiet for 1-3
+    s at a time, its scans stamped in bursts) still measures the motion over the pause, so
+    the pause is spread like a catch-up, its samples at most ``hole / 2`` s apart (zero
+    samples filling in), and no sample gap is left for the factors to read as an odometry
+    hole; spans longer than ``hole`` s are counted as ``gap_spans`` and ``gap_seconds``. An
+    event more than ``spread`` s after the last record ends the hold as it was: a hole.
+
+    Events leave in the order of their stamps, which never go below the last one delivered.
+    Feed every odometry record to :meth:`odometry`, every other event to :meth:`event`, and
+    call :meth:`flush` at the end of the log.
     """
 
     def __init__(self, drive: VirtualDrive, limits: OdometryLimits, notes: dict[str, Any]) -> None:
         self.drive = drive
         self.stale = limits.stale  # s
         self.hole = limits.hole  # s
+        self.spacing = limits.hole / 2  # s between the samples of a span spread, at most
+        self.spread = max(limits.spread, limits.stale)  # s: the longest span spread
         self.notes = notes
-        notes.setdefault("stale_spans", 0)
-        notes.setdefault("stale_seconds", 0.0)
+        for key in ("stale", "gap"):
+            notes.setdefault(f"{key}_spans", 0)
+            notes.setdefault(f"{key}_seconds", 0.0)
         self.held: list[Event] = []
         self.repeat_t: float | None = None  # s, stamp of the last repeat held
         self.repeats: list[float] = []  # s, stamps of the held repeats that are records
         self.last_out = -math.inf  # s, stamp of the last event delivered
+        self.last_record: float | None = None  # s, stamp of the last odometry record
 
     def holding(self, t: float) -> bool:
         """Whether a repeat (or an event after one) at ``t`` s is held: the last change of the
@@ -188,6 +213,7 @@ class StaleOdometryHold:
         rad, over the last record) releases. ``sample`` False: the record is no odometry
         record of its own (a scan's odometry field): a repeat that is a stop gives no zero
         samples, only the held events."""
+        self.last_record = t
         if np.any(np.asarray(inc) != 0):
             return self._motion(t, inc)
         if self.holding(t):
@@ -197,24 +223,28 @@ class StaleOdometryHold:
             return []
         if not sample:
             return self._release()
-        return self._stood_still() + self._motion(t, inc)
+        self.repeats.append(t)  # a stop, this record its last repeat
+        return self._stood_still()
 
     def event(self, ev: Event, *, needs_odometry: bool = True) -> list[Event]:
-        """The events a non-odometry event releases: none while it is held (a repeat lies
-        before it within ``stale`` s of the last change), else the event itself (after the
-        held ones when the repeat turned out to be a stop). ``needs_odometry`` False: an
-        event placed without the odometry (a ground-truth pose) waits only behind held
-        events, to keep the time order, and never ends a hold."""
+        """The events a non-odometry event releases: none while it is held (it waits for the
+        odometry record after it, up to ``spread`` s after the last record), else the event
+        itself (after the held ones when the hold ended as a stop or a hole).
+        ``needs_odometry`` False: an event placed without the odometry (a ground-truth pose)
+        waits only behind held events, to keep the time order, and never ends a hold."""
         out: list[Event] = []
         if not needs_odometry:
             if self.held:
                 self.held.append(ev)
                 return []
-        elif self.repeat_t is not None:
-            if self.holding(ev.t):
-                self.held.append(ev)
-                return []
-            out = self._stood_still()
+        else:
+            if self.repeat_t is not None and not self.holding(ev.t):
+                out = self._stood_still()
+            if self.last_record is not None:
+                if ev.t - self.last_record <= self.spread:
+                    self.held.append(ev)
+                    return out
+                out += self._release()  # a hole: the held events as they were
         self.last_out = max(self.last_out, ev.t)
         return [*out, ev]
 
@@ -223,34 +253,36 @@ class StaleOdometryHold:
         return self._release()
 
     def _stood_still(self) -> list[Event]:
-        """The pending repeats were a stop: a zero sample at each held repeat record among the
-        held events, in time order (a sample before an event of the same stamp)."""
-        out: list[Event] = []
-        held = sorted(self.held, key=lambda e: e.t)  # stable: the held order at equal stamps
-        reps = list(self.repeats)
-        i = j = 0
-        while i < len(reps) or j < len(held):
-            if j == len(held) or (i < len(reps) and reps[i] <= held[j].t):
-                out += self.drive.ticks(reps[i], np.zeros(3), after=self.last_out, hole=math.inf)
-                i += 1
-            else:
-                out.append(held[j])
-                j += 1
-            if out:
-                self.last_out = max(self.last_out, out[-1].t)
-        self.held, self.repeat_t, self.repeats = [], None, []
-        return out
+        """The pending repeats were a stop: zero samples up to each held repeat record (at
+        most ``hole / 2`` s apart) among the held events, in time order (a sample before an
+        event of the same stamp)."""
+        zeros = [
+            ev
+            for t in self.repeats
+            for ev in self.drive.ticks(t, np.zeros(3), after=self.last_out, spacing=self.spacing)
+        ]
+        return self._deliver(zeros)
 
     def _motion(self, t: float, inc: Increment) -> list[Event]:
         """The samples of ``inc`` ending at ``t`` s (spread back over the held span) and the
         held events, in time order (a sample before an event of the same stamp)."""
         start = self.drive.t
-        hole = self.stale if self.held else self.hole  # a held span is spread, not a hole
-        ticks = self.drive.ticks(t, inc, after=self.last_out, hole=hole)
-        if self.held and start is not None and np.any(np.asarray(inc) != 0):
-            self.notes["stale_spans"] += 1
-            self.notes["stale_seconds"] = round(self.notes["stale_seconds"] + t - start, 3)
-        out = sorted([*ticks, *self.held], key=lambda e: (e.t, not isinstance(e, OdometryEvent)))
+        if self.held:  # a held span is spread, not a hole
+            ticks = self.drive.ticks(t, inc, self.last_out, self.spread, self.spacing)
+            stale = self.repeat_t is not None and np.any(np.asarray(inc) != 0)
+            kind = "stale" if stale else "gap"
+            if start is not None and (stale or t - start > self.hole):
+                self.notes[f"{kind}_spans"] += 1
+                secs = self.notes[f"{kind}_seconds"] + t - start
+                self.notes[f"{kind}_seconds"] = round(secs, 3)
+        else:
+            ticks = self.drive.ticks(t, inc, after=self.last_out, hole=self.hole)
+        return self._deliver(ticks)
+
+    def _deliver(self, samples: list[OdometryEvent]) -> list[Event]:
+        """``samples`` and the held events in time order (a sample before an event of the same
+        stamp; held events of one stamp in their held order); the hold emptied."""
+        out = sorted([*samples, *self.held], key=lambda e: (e.t, not isinstance(e, OdometryEvent)))
         self.held, self.repeat_t, self.repeats = [], None, []
         if out:
             self.last_out = max(self.last_out, out[-1].t)

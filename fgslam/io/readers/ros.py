@@ -29,11 +29,12 @@ before reading, both clocks are checked per topic with the rules of
 :class:`ReaderError` names each clock's first defect and its topic. Messages with sporadic
 bad stamps are handled as going backwards (below). Odometry messages moving faster than the
 reader's :class:`~fgslam.io.readers.sanity.OdometryLimits` are skipped and counted, the jump
-dropped (:class:`~fgslam.io.readers.common.OdometryJumps`), or with ``strict`` an error; gaps in
-the odometry while scans come are counted as holes. Odometry that
-repeats its pose (a frozen stream) and the scans and range readings after it are held and
-spread by :class:`~fgslam.io.readers.common.StaleOdometryHold` (``stale_spans``,
-``stale_seconds`` in the odometry notes), as in raw CARMEN logs. Topic names are
+dropped (:class:`~fgslam.io.readers.odometry.OdometryJumps`), or with ``strict`` an error. Scans
+and range readings wait for the odometry message after them, which is spread over the span
+(:class:`~fgslam.io.readers.odometry.StaleOdometryHold`, as in raw CARMEN logs): a frozen
+stream that catches up (``stale_spans``, ``stale_seconds`` in the odometry notes) and a pause
+of up to ``spread`` s (``gap_spans``, ``gap_seconds``) are interpolated; longer gaps while
+scans come are counted as holes. Topic names are
 chosen by option; left out, the only topic of the right type is taken. A bag without such a
 topic is a :class:`ReaderError` listing the topics it has. Header stamps that go backwards
 are counted: a scan or range reading is then skipped, an odometry message's motion is carried
@@ -593,7 +594,9 @@ class RosBag(Source):
                     late(conn.topic, count[conn.topic], t, last)
                     continue
                 last = t
-                if conn.topic == self.scan_topic and t - last_odo_in > self.limits.hole:
+                if conn.topic == self.scan_topic and t - last_odo_in > max(
+                    self.limits.hole, self.limits.spread
+                ):
                     if not in_hole and last_odo_in > -math.inf:
                         self._odo_notes["holes"] += 1
                         in_hole = True

@@ -67,14 +67,18 @@ class OdometryLimits:
     """Plausible odometry: at most ``max_speed`` m/s and ``max_turn_rate`` rad/s between two
     records (with :data:`MIN_DT` s of slack), or, where the log has no clock (index stamps),
     at most ``max_step`` m between two records (any turn: a heading is known only modulo a
-    full turn); a gap longer than ``hole`` s with scans in it is
-    an odometry hole; odometry that repeats its last pose is held as possibly stale for up to
-    ``stale`` s (:class:`fgslam.io.readers.common.StaleOdometryHold`)."""
+    full turn); odometry that repeats its last pose is held as possibly stale for up to
+    ``stale`` s, and a gap of a pose stream of up to ``spread`` s is interpolated: its motion,
+    which the record after it measures, is spread over it
+    (:class:`fgslam.io.readers.odometry.StaleOdometryHold`). A longer gap with scans in it is
+    an odometry hole (longer than ``hole`` s where the odometry is no pose stream: corrected
+    CARMEN logs)."""
 
     max_speed: float = 3.0
     max_turn_rate: float = 6.0
     hole: float = 1.0
     stale: float = 2.0  # s; MIT CSAIL's freezes last up to 1.07 s
+    spread: float = 5.0  # s; intel.orig.bag's /odom pauses for up to 3.1 s (258 gaps of 1-3 s)
     max_step: float = 10.0  # m between two odometry records, without a clock
 
     def notes(self) -> dict[str, float]:
@@ -84,6 +88,7 @@ class OdometryLimits:
             "max_turn_rate_rad_s": self.max_turn_rate,
             "hole_s": self.hole,
             "stale_s": self.stale,
+            "spread_s": self.spread,
             "max_step_m": self.max_step,
         }
 
