@@ -141,6 +141,7 @@ def main() -> None:
     ap.add_argument("--timeout", type=float, default=3600.0, help="s per command")
     args = ap.parse_args()
     work = args.out or Path(tempfile.mkdtemp(prefix="fgslam-corpus-"))
+    work.mkdir(parents=True, exist_ok=True)
     rows = []
     for log in logs(args.data, args.logs):
         run_log = log
