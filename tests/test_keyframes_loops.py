@@ -234,6 +234,47 @@ def test_a_closure_the_estimate_is_too_sure_against_waits_for_a_second():
     assert c.reason == "inconsistent with the estimate" and not c.accepted
 
 
+def _drifted_revisit(params: LoopParams, offset: float):
+    """Keyframe 0 in the room, then keyframes without scans along 40 m of corridor, then a
+    return to keyframe 0's place that the estimate believes ``offset`` m further in x (it
+    drifted, and is sure of it: 2 mm, 0.05 deg, as after many scan matches). Returns the
+    candidates of the return, its match against keyframe 0 and the true relative pose."""
+    import gtsam
+
+    rng = np.random.default_rng(6)
+    segs = _room()
+    closer = LoopCloser(params, _mp())
+    old = np.array([2.0, 3.0, 0.0])
+    closer.add_keyframe(0, _scan(segs, old, rng), old)
+    for i in range(1, 5):  # out along y and back, 10 m steps, no scans
+        closer.add_keyframe(i, None, np.array([2.0, 3.0 + 10.0 * min(i, 4 - i), 0.0]))
+    here = old + np.array([0.3, 0.1, 0.05])
+    believed = here + np.array([offset, 0.0, 0.0])
+    closer.add_keyframe(5, _scan(segs, here, rng), believed)
+    cands = closer.candidates(5, np.vstack([old] * 5), believed)
+    cov = np.diag([0.002, 0.002, math.radians(0.05)]) ** 2
+    c = closer.verify(0, 5, np.array([old]), gtsam.Pose2(*between_poses(old, believed)), cov)
+    return cands, c, between_poses(old, here)
+
+
+def test_a_revisit_the_estimate_misplaces_by_metres_is_still_found():
+    """An estimate sure to 2 mm that is 2.5 m off at a revisit (the Intel bag's first loop
+    came back 2-5 m off with 3 sigma under 2 m): the search window's floor (3 m) still holds
+    the true pose, which the match finds; the closure then waits for a second, being
+    inconsistent with the estimate. At 4.5 m off the old place is still a candidate (within
+    6 m). With the floors before (window 1-2 m, candidates within 4 m) neither."""
+    cands, c, true = _drifted_revisit(LoopParams(), 2.5)
+    assert cands == [0] and c.reason == AWAITING and c.mahalanobis2 > 1e3, c
+    e = c.pose - true
+    assert math.hypot(e[0], e[1]) < 0.03 and abs(wrap_angle(float(e[2]))) < math.radians(0.5)
+    assert _drifted_revisit(LoopParams(), 4.5)[0] == [0]
+    before = LoopParams(radius=4.0, min_search_xy=1.0, max_search_xy=2.0)
+    _, c, true = _drifted_revisit(before, 2.5)
+    e = c.pose - true
+    assert not (c.reason == AWAITING and math.hypot(e[0], e[1]) < 0.03), c
+    assert _drifted_revisit(before, 4.5)[0] == []
+
+
 def test_an_uncertain_closure_enters_only_with_a_second_that_agrees():
     """Two verified closures of consecutive keyframes to neighbouring old ones enter together
     when they agree through the estimate's geometry; one that disagrees waits, and expires."""
