@@ -2,7 +2,7 @@
 laser-only SLAM with each backend, next to odometry alone, the reference (GMapping) poses and
 the published figures.
 
-Run: python experiments/real_relations.py [--logs intel mit-csail freiburg-079]
+Run: python experiments/real_relations.py [--logs intel mit-csail freiburg-079 intel-bag]
        [--backends ekf isam2 batch] [--max-scans N] [--calibration off|wheels]
        [--laser-calibration off|offset|range] [--line-end-trim K]
        [--corners with-lines|replace-lines|off]
@@ -10,7 +10,8 @@ Reads ``../shared/data/<log>`` with fgslam.io.readers (corrected logs: odometry 
 corrected poses as reference; mit-csail: a raw log), runs the front end in "laser" mode and
 the backends (iSAM2 and batch share one graph; the EKF alone), and scores the keyframe poses
 with the log's own odometry records filling relation ends between keyframes
-(:func:`fgslam.evaluation.dense.relations_error_chain`, the benchmark's method). A backend that
+(:func:`fgslam.evaluation.dense.relations_error_chain`, the benchmark's method); the ROS bag
+(every scan, no reference poses) by its every-scan trajectory, interpolated. A backend that
 fails is reported as failed, with what it did up to then. Prints one markdown row per run.
 """
 
@@ -38,16 +39,22 @@ FILES = {
     "intel": ("intel-corrected.log.gz", "intel-corrected.relations"),
     "freiburg-079": ("freiburg-079-corrected.log.gz", "freiburg-079-corrected.relations"),
     "mit-csail": ("mit-csail.clf", "mit-csail.relations"),
+    "intel-bag": ("intel.orig.bag", "intel.orig.relations"),
 }
 # published translational errors, m (Kümmerle et al. 2009; Cartographer: Hess et al. 2016)
 PUBLISHED = {
     "intel": "graph 0.031, Cartographer 0.023, GMapping 0.070, scan matching 0.220",
     "freiburg-079": "graph 0.056, Cartographer 0.045, GMapping 0.061, scan matching 0.258",
     "mit-csail": "graph 0.004, Cartographer 0.032, GMapping 0.049, scan matching 0.106",
+    "intel-bag": "the Intel anchors: graph 0.031, Cartographer 0.023, GMapping 0.070",
 }
 
 
 def score(chain, rel, t, poses) -> dict:
+    """Relations error of the poses at times ``t``: along the log's odometry chain, or (no
+    chain: an every-scan bag) interpolated."""
+    if chain is None:
+        return dense.relations_error(rel, t, poses)
     est, has = dense.estimate_at_scans(chain, t, poses)
     return dense.relations_error_chain(rel, chain, est, has)
 
@@ -112,8 +119,8 @@ def run(
 ) -> None:
     log_file, rel_file = FILES[name]
     path, rel = DATA / log_file, dense.read_relations(DATA / rel_file)
-    chain = odometry_chain(path)
-    reference = chain.scan_poses
+    chain = None if path.suffix == ".bag" else odometry_chain(path)
+    reference = None if chain is None else chain.scan_poses
     groups = [[b] for b in backends if b == "ekf"] + [[b for b in backends if b != "ekf"]]
     first = header
     for group in [g for g in groups if g]:
@@ -136,7 +143,7 @@ def run(
                 first = False
                 odo = score(chain, rel, res.times, res.odometry)
                 print(f"| {name} | odometry alone | {fmt(odo)} | | | | | |")
-                if np.isfinite(reference).all() and name != "mit-csail":
+                if chain is not None and np.isfinite(reference).all() and name != "mit-csail":
                     ref = dense.relations_error_chain(
                         rel, chain, reference, np.ones(len(reference), dtype=bool)
                     )
@@ -166,7 +173,7 @@ def run(
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--logs", nargs="+", default=["intel", "mit-csail", "freiburg-079"])
+    ap.add_argument("--logs", nargs="+", default=list(FILES), choices=list(FILES))
     ap.add_argument("--backends", nargs="+", default=["ekf", "isam2", "batch"])
     ap.add_argument("--max-scans", type=int, default=None)
     ap.add_argument(
