@@ -111,6 +111,13 @@ def per_call(fn, args, repeat: int) -> float:
     return (time.perf_counter() - t0) / repeat
 
 
+def row(name: str, reference, compiled, args, repeat: int, compiled_args=None):
+    """(name, numpy s/call, compiled s/call): ``reference`` and ``compiled`` timed on
+    ``args`` (the compiled one on ``compiled_args`` where its signature differs)."""
+    fast = args if compiled_args is None else compiled_args
+    return name, per_call(reference, args, repeat), per_call(compiled, fast, repeat)
+
+
 def scanmatch_rows(repeat: int) -> list[tuple[str, float, float]]:
     """(kernel, numpy s/call, compiled s/call) of the scan matcher's kernels on a box room's
     scans, each checked against its reference first."""
@@ -156,31 +163,24 @@ def scanmatch_rows(repeat: int) -> list[tuple[str, float, float]]:
     assert np.array_equal(kernels.splat(*sp_args).reshape(shape), ref.grid)
     assert np.array_equal(kernels.splat(*sp_args), kernels.splat_numpy(*sp_args))
     return [
-        (
+        row(
             "branch_and_bound (search._search)",
-            per_call(search._search_numpy, s_args, repeat),
-            per_call(search._search, s_args, repeat),
+            search._search_numpy,
+            search._search,
+            s_args,
+            repeat,
         ),
-        (
-            "icp_loop (icp._icp)",
-            per_call(icp._icp_numpy, i_args, repeat),
-            per_call(icp._icp, i_args, repeat),
-        ),
-        (
-            "local_lines",
-            per_call(_normals_numpy, ln_args, repeat),
-            per_call(kernels.local_lines, l_args, repeat),
-        ),
-        (
+        row("icp_loop (icp._icp)", icp._icp_numpy, icp._icp, i_args, repeat),
+        row("local_lines", _normals_numpy, kernels.local_lines, ln_args, repeat, l_args),
+        row(
             "polyline_cells",
-            per_call(_polyline_cells_numpy, (p, tree, *pc), repeat),
-            per_call(kernels.polyline_cells, (c, *pc), repeat),
+            _polyline_cells_numpy,
+            kernels.polyline_cells,
+            (p, tree, *pc),
+            repeat,
+            (c, *pc),
         ),
-        (
-            "splat",
-            per_call(kernels.splat_numpy, sp_args, repeat),
-            per_call(kernels.splat, sp_args, repeat),
-        ),
+        row("splat", kernels.splat_numpy, kernels.splat, sp_args, repeat),
     ]
 
 
@@ -202,21 +202,17 @@ def frontend_rows(repeat: int) -> list[tuple[str, float, float]]:
     assert tuple(kernels.trim_bounds(*targs)) == fits._trim_bounds_numpy(*targs)
     seg = (phi, r, sp)
     return [
-        (
+        row(
             "grow_lines (segment_scan)",
-            per_call(segmentation.segment_scan_reference, seg, repeat),
-            per_call(segmentation.segment_scan, seg, repeat),
+            segmentation.segment_scan_reference,
+            segmentation.segment_scan,
+            seg,
+            repeat,
         ),
-        (
-            "line_fit (one line fit)",
-            per_call(fits._fit_line_once_numpy, args, repeat),
-            per_call(fits._fit_line_once, args, repeat),
+        row(
+            "line_fit (one line fit)", fits._fit_line_once_numpy, fits._fit_line_once, args, repeat
         ),
-        (
-            "trim_bounds",
-            per_call(fits._trim_bounds_numpy, targs, repeat),
-            per_call(kernels.trim_bounds, targs, repeat),
-        ),
+        row("trim_bounds", fits._trim_bounds_numpy, kernels.trim_bounds, targs, repeat),
     ]
 
 
