@@ -27,7 +27,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from factors.geometry import compose_poses
+from factors.geometry import between_poses, compose_poses
 from factors.odometry import integrate_poses, preintegrate
 from fgslam.config import RobotConfig
 from fgslam.config.robot import KeyframeParams, LoopParams, MapParams
@@ -267,6 +267,7 @@ class SlamPipeline:
         origin = (cfg.laser.mount.x, cfg.laser.mount.y)
         self.scan_odometry = ScanOdometry(kp, mp, origin, cfg.laser.sigma_time)
         self._between: list[tuple[float, int, NDArray[np.float64]]] = []  # non-keyframes
+        self._kf_rel: list[NDArray[np.float64]] = []  # each keyframe's scan-odometry motion
         cal = Calibration.from_config(cfg)
         for b in backends:
             if b == "ekf":
@@ -352,6 +353,7 @@ class SlamPipeline:
             self.stats["scans_between_keyframes"] += 1
             return False
         scan = step.scan if self.keyframe_params.odometry != "wheels" else None
+        self._kf_rel.append(step.rel)
         self._keyframe(sf, scan, step.speed)
         sess = next(iter(self.sessions.values()))
         self.scan_odometry.map_support(len(sf.features), sess.tracked)
@@ -455,6 +457,7 @@ class SlamPipeline:
             sensors=self.sensors,
             final=False,
             between=self._between,
+            kf_rel=self._kf_rel,
         )
 
     def finish(self) -> list[SlamResult]:
@@ -488,6 +491,7 @@ class SlamPipeline:
             last_t=self.last_t,
             sensors=self.sensors,
             between=self._between,
+            kf_rel=self._kf_rel,
         )
         # (session, name) in the order to finish them: iSAM2's estimate before the batch solve
         order = [("ekf", "ekf"), ("graph", "isam2"), ("graph", "batch")]
@@ -556,6 +560,7 @@ def _result(
     sensors,
     final=True,
     between=(),
+    kf_rel=(),
 ) -> SlamResult:
     """Finish one session's backend and package its result; ``shared`` (s) is the reading
     and front-end time that every backend of the pass is charged with. Not ``final``: the
@@ -584,7 +589,7 @@ def _result(
     sess_wall = sess.wall + batch_seconds
     times = np.array([p[0] for p in traj])
     poses = np.array([p[1] for p in traj]).reshape(-1, 3)
-    scan_t, scan_p = _scan_poses(times, poses, between)
+    scan_t, scan_p = place_scans(times, poses, between, kf_rel)
     return SlamResult(
         scan_times=scan_t,
         scan_poses=scan_p,
@@ -619,14 +624,38 @@ def _result(
     )
 
 
-def _scan_poses(times, poses, between) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Keyframe poses and the scans between them (their keyframe's pose composed with their
-    scan odometry), in time order."""
+def place_scans(
+    times: NDArray[np.float64],
+    poses: NDArray[np.float64],
+    between: Sequence[tuple[float, int, NDArray[np.float64]]],
+    kf_rel: Sequence[NDArray[np.float64]] = (),
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Every scan's world pose (m, rad), in time order: the keyframes' estimates ``poses`` at
+    ``times`` and the scans ``between`` them, each (t, keyframe index k, its scan-odometry
+    pose in keyframe k's frame).
+
+    A scan between keyframes k and k + 1 is keyframe k's estimate composed with its scan
+    odometry, then moved by its share of the correction the estimate made to the scan
+    odometry's motion to keyframe k + 1 (``kf_rel[k + 1]``, in keyframe k's frame): E =
+    (X_k R_k+1)^-1 X_k+1, applied as a * E (tangent, scaled) with a the scan's progress
+    along R_k+1 (travel + 0.5 m/rad x turn, in [0, 1]). The scans then meet keyframe k + 1
+    instead of jumping to it; the scans after the last keyframe keep their odometry."""
     rows = [(t, k, rel) for t, k, rel in between if 0 <= k < len(poses)]
     if not rows:
         return times.copy(), poses.copy()
     k = np.array([r[1] for r in rows])
-    placed = compose_poses(poses[k], np.array([r[2] for r in rows]))
+    rel = np.array([r[2] for r in rows], dtype=float).reshape(-1, 3)
+    placed = compose_poses(poses[k], rel)
+    n = min(len(poses), len(kf_rel))
+    ok = k + 1 < n
+    if ok.any():
+        kk = k[ok]
+        R = np.asarray(kf_rel[:n], dtype=float).reshape(-1, 3)[kk + 1]
+        E = between_poses(compose_poses(poses[kk], R), poses[kk + 1])
+        progress = np.hypot(rel[ok, 0], rel[ok, 1]) + 0.5 * np.abs(rel[ok, 2])
+        total = np.hypot(R[:, 0], R[:, 1]) + 0.5 * np.abs(R[:, 2])
+        a = np.clip(progress / np.maximum(total, 1e-9), 0.0, 1.0)
+        placed[ok] = compose_poses(placed[ok], a[:, None] * E)
     t = np.concatenate([times, [r[0] for r in rows]])
     p = np.vstack([poses, placed])
     order = np.argsort(t, kind="stable")
