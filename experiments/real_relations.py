@@ -5,7 +5,7 @@ the published figures.
 Run: python experiments/real_relations.py [--logs intel mit-csail freiburg-079 intel-bag]
        [--backends ekf isam2 batch] [--max-scans N] [--calibration off|wheels]
        [--laser-calibration off|offset|range] [--line-end-trim K]
-       [--corners with-lines|replace-lines|off]
+       [--corners with-lines|replace-lines|off] [--landmarks on|off]
 Reads ``../shared/data/<log>`` with fgslam.io.readers (corrected logs: odometry rebuilt, the
 corrected poses as reference; mit-csail: a raw log), runs the front end in "laser" mode and
 the backends (iSAM2 and batch share one graph; the EKF alone), and scores the keyframe poses
@@ -116,6 +116,7 @@ def run(
     corners: str | None = None,
     laser_calibration: str | None = None,
     line_end_trim: float | None = None,
+    landmarks: bool | None = None,
 ) -> None:
     log_file, rel_file = FILES[name]
     path, rel = DATA / log_file, dense.read_relations(DATA / rel_file)
@@ -132,6 +133,7 @@ def run(
                 "odometry": {"calibration": calibration},
                 "laser": {"calibration": laser_calibration},
                 "frontend": {"corners": corners, "line_end_trim": line_end_trim},
+                "map": {"landmarks": landmarks},
             },
         )
         sample = ScanSample(max_scans=1500)
@@ -210,6 +212,12 @@ def main() -> None:
         help="corners with their lines (the paper), instead of them, or none (default: the "
         "configuration's)",
     )
+    ap.add_argument(
+        "--landmarks",
+        choices=["on", "off"],
+        help="line and corner landmarks in the graph, or scan matching and loop closures "
+        "alone (default: the configuration's, on)",
+    )
     args = ap.parse_args()
     print(
         "| log | estimate | relations trans (m): mean ± std (max) | rot (deg) | relations used "
@@ -229,6 +237,7 @@ def main() -> None:
                 corners=args.corners,
                 laser_calibration=args.laser_calibration,
                 line_end_trim=args.line_end_trim,
+                landmarks=None if args.landmarks is None else args.landmarks == "on",
             )
 
 

@@ -3,6 +3,7 @@ answers, robustness to bad logs, and the outputs."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from types import SimpleNamespace
@@ -115,6 +116,22 @@ def test_sensor_modes_run(sensors):
         assert len(res.every_scan[0]) > 50  # a pose at every scan (keyframes by motion)
         if sensors == "sonar":
             assert not any(lm.observations.get("laser") for lm in res.landmarks.values())
+
+
+def test_landmarks_off_keeps_scan_matching_and_tracks_the_truth():
+    """``[map] landmarks = false``: no landmark enters the graph, the keyframes come by motion
+    alone (not one per scan for want of map support), and scan matching still beats the
+    wheels against the truth."""
+    evs, cfg, _ = room_events(0, 40.0)
+    cfg = dataclasses.replace(cfg, map=dataclasses.replace(cfg.map, landmarks=False))
+    on = run_backends(list(evs), room_events(0, 40.0)[1], ["isam2"], "laser")[0]
+    (off,) = run_backends(list(evs), cfg, ["isam2"], "laser")
+    assert len(on.landmarks) >= 4 and len(off.landmarks) == 0
+    assert off.stats["keyframes_map_support"] == 0
+    assert len(off.times) <= len(on.times) < len(off.every_scan[0]) / 2
+    a = evaluation.ate(off.poses, _truth(off))
+    odo = evaluation.ate(off.odometry, _truth(off))
+    assert a["rmse"] < 0.05 and a["rmse"] < 0.8 * odo["rmse"], (a, odo)
 
 
 def test_bad_logs_never_crash():

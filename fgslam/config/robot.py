@@ -229,6 +229,9 @@ class MapParams:
     max_gap: float = _assoc("max_gap", "gap a measurement may extend a line by", "m")
     sonar_line_gap: float = _assoc("sonar_line_gap", "sonar plane's foot to a line", "m")
     pregate: tuple[float, float, float] = _assoc("pregate", "residual pre-gate", "rad|m")
+    landmarks: bool = param(
+        True, "bool", "features become landmarks (false: poses, motions and loops only)"
+    )
     # geometry
     min_line_length: float = param(0.7, "m", "only longer lines enter the map")
     big_step: float = param(0.5, "1", "endpoint moved this fraction toward a reliable end")

@@ -356,7 +356,7 @@ class SlamPipeline:
         self._kf_rel.append(step.rel)
         self._keyframe(sf, scan, step.speed)
         sess = next(iter(self.sessions.values()))
-        self.scan_odometry.map_support(len(sf.features), sess.tracked)
+        self.scan_odometry.map_support(len(sf.features) if sess.p.landmarks else 0, sess.tracked)
         return True
 
     def _keyframe(self, sf, scan=None, speed=(0.0, 0.0)) -> None:

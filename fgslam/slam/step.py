@@ -85,6 +85,9 @@ class SlamStep:
         error (e.g. :class:`fgslam.slam.graph.BackendError`) unchanged."""
         t0 = time.perf_counter()
         be, lc = self.be, self.map
+        n_features = len(features)
+        if not self.p.landmarks:  # scan matching and loop closures alone
+            features, given = [], None if given is None else []
         self.k += 1
         lc.k = self.k
         if not self.started:
@@ -143,7 +146,7 @@ class SlamStep:
         dt = time.perf_counter() - t0
         self.latencies.append(dt)
         self.wall += dt
-        return where
+        return where if self.p.landmarks else [None] * n_features
 
     # ------------------------------------------------------------------ decisions
 
