@@ -169,7 +169,7 @@ def test_frontend_thresholds_derived_from_another_laser(tmp_path):
             "outlier": 0.035,
             "spread": 0.0125,
             "max_line_range": 4.0,
-            "map_max_range": 6.0,
+            "map_max_range": 10.0,
             "residual_level": 0.99,
         }
     )

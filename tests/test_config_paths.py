@@ -234,22 +234,23 @@ def test_replacing_a_section_resolves_the_links_again():
     from fgslam.io.readers.common import derived_config
 
     lms = derived_config(181, 180.0)  # the CARMEN logs' SICK LMS: sigma 1 cm, 1 deg
-    assert lms.features.segment.min_points == 4 and lms.map.max_range == 6.0
+    assert lms.features.segment.min_points == 4 and lms.map.max_range == 10.0  # the floor
+    fine = derived_config(721, 180.0)  # 0.25 deg: 16 m lines, candidates 2 m beyond
+    assert fine.frontend.max_line_range == 0.0 and fine.map.max_range == 18.0
     assert lms.matcher.sigma_range == c.SICK_LMS_SIGMA_RANGE == 0.01
     assert lms.matcher.floor_theta == pytest.approx(math.radians(1.0))
 
 
-def test_known_bug_kept_the_association_path_takes_the_pls_map_range():
-    """issue 32, item 2: given an association, the map ignores the sensor-derived range
-    (fixing it moves experiments/real_carmen.py's figures); every other [map] key arrives."""
+def test_the_association_path_keeps_the_sensor_derived_map_range():
+    """Given an association (as `fgslam run` always is) the map keeps the range derived from
+    the laser, and every other [map] key arrives."""
     from fgslam.io.readers.common import derived_config
 
-    lms = dataclasses.replace(
-        derived_config(181, 180.0), map=dataclasses.replace(MapParams(), unseen_limit=9)
-    )
-    assert SlamPipeline(lms, ["ekf"]).sessions["ekf"].p.max_range == 6.0
+    fine = derived_config(721, 180.0)
+    lms = dataclasses.replace(fine, map=dataclasses.replace(fine.map, unseen_limit=9))
+    assert SlamPipeline(lms, ["ekf"]).sessions["ekf"].p.max_range == 18.0
     via = SlamPipeline(lms, ["ekf"], association="nn").sessions["ekf"].p
-    assert via.max_range == 10.0 and via.association == "nn" and via.unseen_limit == 9
+    assert via.max_range == 18.0 and via.association == "nn" and via.unseen_limit == 9
 
 
 def _show(capsys, cfg=None) -> str:

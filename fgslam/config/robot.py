@@ -48,7 +48,10 @@ class FrontendConfig:
         derive="where beams lie 7 cm apart, 0.07 m / beam step to 0.5 m, <= max_range",
     )
     map_max_range: float = param(
-        0.0, "m", "landmarks farther are no association candidates", derive="max_line_range + 2"
+        0.0,
+        "m",
+        "landmarks farther are no association candidates",
+        derive="max(max_line_range + 2, 10)",
     )
     residual_level: float = param(
         0.0, "p", "chi-square level beyond which a fit's residual scales its covariance; 0 off"
@@ -630,7 +633,8 @@ LINE_SPAN_DEG = 4.0  # a line spans more than this many degrees of beams (PLS: 8
 OUTLIER_SIGMAS = 3.5  # the outlier test, in range sigmas (PLS: 7 cm)
 SPREAD_SIGMAS = 1.25  # the largest point-to-line std, in range sigmas (PLS: 2.5 cm)
 LINE_SPACING = 0.07  # m between neighbouring beams beyond which lines end (PLS: at 8 m)
-MAP_RANGE_MARGIN = 2.0  # m: association candidates this much beyond the line range
+MAP_RANGE_MARGIN = 2.0  # m: association candidates this much beyond the line range ...
+MAP_RANGE_MIN = 10.0  # m: ... and at least this far (docs/readers.md, front-end thresholds)
 
 
 def frontend_thresholds(cfg: RobotConfig) -> dict[str, Any]:
@@ -645,6 +649,8 @@ def frontend_thresholds(cfg: RobotConfig) -> dict[str, Any]:
         "max_line_range": fe.max_line_range
         or min(las.max_range, 0.5 * round(2 * LINE_SPACING / step)),
     }
-    out["map_max_range"] = fe.map_max_range or out["max_line_range"] + MAP_RANGE_MARGIN
+    out["map_max_range"] = fe.map_max_range or max(
+        out["max_line_range"] + MAP_RANGE_MARGIN, MAP_RANGE_MIN
+    )
     out["residual_level"] = fe.residual_level or None
     return out

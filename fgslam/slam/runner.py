@@ -248,15 +248,10 @@ class SlamPipeline:
         if association is not None:
             if association not in METHODS:
                 raise ValueError(f"unknown association {association!r}; expected one of {METHODS}")
-            if map_params is None:
-                # A known bug, kept (issue 32, item 2): given an association (as `fgslam run`
-                # always is) the map ignores the sensor-derived frontend.map_max_range and
-                # takes the PLS's 10 m; fixing it moves experiments/real_carmen.py's figures
-                # (its SICK LMS derives 6 m: docs/readers.md).
-                map_params = replace(MapParams.from_config(cfg), max_range=MapParams.max_range)
+        map_params = map_params or MapParams.from_config(cfg)
+        if association is not None:
             map_params = replace(map_params, association=association)
         self.sessions: dict[str, _Session] = {}
-        map_params = map_params or MapParams.from_config(cfg)
         kp = keyframes or KeyframeParams.from_config(cfg)
         lp = loops or LoopParams.from_config(cfg)
         if sensors == "sonar":  # the paper's scheme: no laser to match
