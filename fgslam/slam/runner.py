@@ -245,11 +245,10 @@ class SlamPipeline:
         self.sensors = sensors
         self.progress = progress
         self.count_idle = count_idle
+        map_params = map_params or MapParams.from_config(cfg)
         if association is not None:
             if association not in METHODS:
                 raise ValueError(f"unknown association {association!r}; expected one of {METHODS}")
-        map_params = map_params or MapParams.from_config(cfg)
-        if association is not None:
             map_params = replace(map_params, association=association)
         self.sessions: dict[str, _Session] = {}
         kp = keyframes or KeyframeParams.from_config(cfg)
