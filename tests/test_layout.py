@@ -154,6 +154,7 @@ LAYERS = (
     ("fgslam.sim",),
     ("fgslam.evaluation",),
     ("fgslam.slam",),
+    ("fgslam.session",),  # map reuse: saved sessions, localization on them
     ("fgslam.online",),
     ("fgslam.cli", "fgslam.__main__"),
 )

@@ -24,6 +24,7 @@ from fgslam.cli import (
     emulate,
     evaluate,
     export_reference,
+    localize,
     online,
     plot_log,
     replay,
@@ -44,6 +45,8 @@ Typical use:
   fgslam run run.log.gz --backend isam2 --out out/   SLAM on a log (native, CARMEN, ROS bag)
   fgslam compare run.log.gz --out cmp/          EKF, iSAM2, batch x fused, laser, sonar
   fgslam demo                                   simulate the built-in run and compare
+  fgslam run run.log.gz --out out/ --save map/   ... and save the map (a session)
+  fgslam localize run2.log.gz --map map/ --out loc/   localize another run on that map
   fgslam evaluate out/trajectory.tum --reference ref.tum   ATE, RPE, NEES
   fgslam export-reference run.log.gz --out ref.tum   truth/reference poses as TUM (for evo)
   fgslam emulate --speed 4 --link-dir /tmp/robot   emulated devices on pseudo-terminals
@@ -59,6 +62,7 @@ OUTPUT_KINDS = {
     "compare": "dir",
     "demo": "dir",
     "online": "dir",
+    "localize": "dir",
     "simulate": "file",
     "convert": "file",
     "replay": "file",
@@ -86,6 +90,7 @@ COMMANDS = (
     simulate,
     plot_log,
     run,
+    localize,
     convert,
     evaluate,
     calibrate,

@@ -38,6 +38,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         "the paper's EKF, incremental smoothing, or batch LM smoothing (default isam2)",
     )
     add_association_argument(p)
+    p.add_argument(
+        "--save",
+        metavar="SESSION",
+        help="also save the run as a session folder (docs/sessions.md: the optimised graph, "
+        "the keyframes' scans, the configuration, map.pgm + map.yaml) for `fgslam localize "
+        "--map`; an existing session there is replaced, any other folder content refused",
+    )
     p.set_defaults(func=run)
 
 
@@ -47,6 +54,12 @@ def run(args: argparse.Namespace) -> int:
     from fgslam.slam.outputs import write_outputs
     from fgslam.slam.runner import run_slam
 
+    if args.save:  # refused before the work, not after
+        from fgslam.session.store import SessionError, check_replaceable
+
+        if Path(args.save).resolve() == Path(args.out).resolve():
+            raise SessionError(f"--save {args.save}: give the session its own folder, not --out")
+        check_replaceable(args.save)
     reader = open_log(args.log, **reader_options(args))
     cfg = with_options(_run_config(reader, args.config, args.log), config_options(args))
     d = reader.meta.get("duration")
@@ -87,6 +100,12 @@ def run(args: argparse.Namespace) -> int:
     for line in notes:
         print(line)
     print_summary(rep, args.out)
+    if args.save:
+        from fgslam.session import Session, save_session
+
+        meta = {"log": Path(args.log).name, "log_duration_s": res.log_duration}
+        save_session(Session.from_result(res, cfg, meta), args.save)
+        print(f"saved the session in {args.save} (session.json, scans.npz, map.pgm, map.yaml)")
     return _report_partial(rep, args.out)
 
 

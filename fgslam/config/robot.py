@@ -527,12 +527,63 @@ class GraphParams:
 
 
 @dataclass(frozen=True)
+class LocalizeParams:
+    """Localization on a saved map (:mod:`fgslam.session.localize`; m, rad); ``[localize]``.
+
+    A scan is matched when the robot has moved ``every_distance`` or turned ``every_angle``
+    since the last matched one (a standing robot costs nothing), against the local map at
+    its predicted pose (the scans of the map keyframes within ``radius``, at most
+    ``max_scans``), within the matcher's window; the last ``window`` matched poses are
+    smoothed with the wheel odometry between them. Global localization (no initial pose,
+    or lost after ``lost_after`` failed matches in a row) searches around every place (map
+    keyframes ``spacing`` apart) over +-``spacing`` and every heading (steps of
+    ``global_step``), keeps up to ``hypotheses`` distinct answers and tracks them; it is
+    localized when the best of them has passed ``confirm`` matches in a row and every other
+    has failed or its mean score is ``confirm_margin`` lower."""
+
+    spacing: float = param(2.0, "m", "between the places the map is cut into")
+    radius: float = param(3.0, "m", "a place's map keyframes lie within this")
+    max_scans: int = param(12, "count", "map keyframes per place, nearest per heading")
+    every_distance: float = param(0.1, "m", "travel before the next scan is matched")
+    every_angle: float = param(math.radians(3.0), "rad", "turn before the next scan is matched")
+    window: int = param(10, "count", "matched poses smoothed together with the odometry")
+    lost_after: int = param(8, "count", "failed matches in a row: lost, search globally")
+    hypotheses: int = param(8, "count", "distinct answers of a global search tracked")
+    confirm: int = param(5, "count", "matches in a row confirming a global answer")
+    confirm_margin: float = param(0.1, "1", "... whose mean score beats every other's by this")
+    global_step: float = param(math.radians(1.0), "rad", "heading step of the global search")
+    cache_size: int = param(64, "count", "places' references kept")
+
+    def __post_init__(self) -> None:
+        for name in ("spacing", "radius", "every_distance", "global_step"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"localize.{name} must be > 0, got {getattr(self, name)!r}")
+        for name in ("max_scans", "window", "lost_after", "hypotheses", "confirm"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"localize.{name} must be >= 1, got {getattr(self, name)!r}")
+
+    @classmethod
+    def from_config(cls, cfg: RobotConfig) -> LocalizeParams:
+        """The ``[localize]`` section of ``cfg``."""
+        return cfg.localize
+
+
+@dataclass(frozen=True)
 class RobotInfo:
     name: str = param(unit="text", doc="the robot's name")
 
 
 # the components' sections of RobotConfig, in the order of the pipeline
-COMPONENTS = ("features", "keyframes", "matcher", "loops", "association", "map", "graph")
+COMPONENTS = (
+    "features",
+    "keyframes",
+    "matcher",
+    "loops",
+    "association",
+    "map",
+    "graph",
+    "localize",
+)
 
 
 @dataclass(frozen=True)
@@ -558,6 +609,7 @@ class RobotConfig:
     association: AssociationParams = field(default_factory=AssociationParams)
     map: MapParams = field(default_factory=MapParams)
     graph: GraphParams = field(default_factory=GraphParams)
+    localize: LocalizeParams = field(default_factory=LocalizeParams)
     source: str = field(default="<default>", compare=False)
 
     def __post_init__(self) -> None:

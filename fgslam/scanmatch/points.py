@@ -43,8 +43,14 @@ def _clean(points: ArrayLike) -> NDArray[np.float64]:
 
 def _voxel(points: NDArray, size: float) -> NDArray:
     """One point per ``size`` cell (the first in order), order kept."""
+    return points[voxel_index(points, size)]
+
+
+def voxel_index(points: NDArray, size: float) -> NDArray[np.int64]:
+    """The indices of one point per ``size`` (m) cell of ``points`` ((N, 2), finite): the
+    first in order, ascending; every index when ``size`` <= 0."""
     if len(points) == 0 or size <= 0:
-        return points
+        return np.arange(len(points))
     key = np.floor(points / size).astype(np.int64)
     _, first = np.unique(key[:, 0] * 3_000_017 + key[:, 1], return_index=True)
-    return points[np.sort(first)]
+    return np.sort(first)

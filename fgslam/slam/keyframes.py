@@ -44,6 +44,7 @@ class ScanStep:
     scan: Preintegrated | None = None
     match: Match | None = None
     speed: tuple[float, float] = (0.0, 0.0)  # the robot's (m/s, rad/s) at the scan
+    points: NDArray[np.float64] | None = None  # the scan's points (robot frame, m)
 
 
 def timing_inflation(
@@ -156,7 +157,7 @@ class ScanOdometry:
         self._rel = guess
         reason = self._keyframe_reason(first, m)
         if reason is None:
-            return ScanStep(False, guess.copy(), None, m, speed)
+            return ScanStep(False, guess.copy(), None, m, speed, points)
         self.stats[f"keyframes_{reason}"] += 1
         scan = None
         if m is not None and m.ok:
@@ -171,7 +172,7 @@ class ScanOdometry:
             self._ref = self._local_map()
         self._rel = np.zeros(3)
         self._low_support = False
-        return ScanStep(True, guess.copy(), scan, m, speed)
+        return ScanStep(True, guess.copy(), scan, m, speed, points)
 
     def _local_map(self) -> Reference:
         """The last ``local_map`` keyframes' points in the newest keyframe's frame, placed by

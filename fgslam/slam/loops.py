@@ -89,6 +89,7 @@ class Closure:
             "accepted": self.accepted,
             "reason": self.reason,
             "pose": None if self.pose is None else [round(float(v), 5) for v in self.pose],
+            "cov": None if self.cov is None else [float(f"{v:.6g}") for v in np.ravel(self.cov)],
             "score": round(self.score, 4),
             "overlap": round(self.overlap, 4),
             "see_through": None

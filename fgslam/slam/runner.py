@@ -114,6 +114,11 @@ class SlamResult:
     scan_times: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
     scan_poses: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 3)))
     loop_closures: list[dict] = field(default_factory=list)  # every attempt (loops.Closure)
+    # each keyframe's laser points (robot frame, m; None: no laser), as ``times``
+    keyframe_scans: list[NDArray[np.float64] | None] = field(default_factory=list)
+    # each keyframe's scan match from the keyframe before ((x, y, theta) in its frame and
+    # covariance, between convention; None: none), one fewer than ``times``
+    keyframe_links: list = field(default_factory=list)
     # the calibration errors estimated: {"parameters": names (Calibration), "estimate": [...],
     # "sigma": [...] or None}; None when not estimated
     calibration: dict | None = None
@@ -262,6 +267,8 @@ class SlamPipeline:
         self.scan_odometry = ScanOdometry(kp, mp, origin, cfg.laser.sigma_time)
         self._between: list[tuple[float, int, NDArray[np.float64]]] = []  # non-keyframes
         self._kf_rel: list[NDArray[np.float64]] = []  # each keyframe's scan-odometry motion
+        self._kf_points: list[NDArray[np.float64] | None] = []  # each keyframe's scan
+        self._kf_links: list = []  # each keyframe's scan match to the one before (or None)
         cal = Calibration.from_config(cfg)
         for b in backends:
             if b == "ekf":
@@ -348,6 +355,14 @@ class SlamPipeline:
             return False
         scan = step.scan if self.keyframe_params.odometry != "wheels" else None
         self._kf_rel.append(step.rel)
+        self._kf_points.append(step.points)
+        if len(self.kf_times):  # the link into this keyframe, from the one before
+            m = step.scan
+            self._kf_links.append(
+                None
+                if m is None
+                else (np.array([m.delta.x(), m.delta.y(), m.delta.theta()]), m.covariance)
+            )
         self._keyframe(sf, scan, step.speed)
         sess = next(iter(self.sessions.values()))
         self.scan_odometry.map_support(len(sf.features) if sess.p.landmarks else 0, sess.tracked)
@@ -452,6 +467,8 @@ class SlamPipeline:
             final=False,
             between=self._between,
             kf_rel=self._kf_rel,
+            kf_points=self._kf_points,
+            kf_links=self._kf_links,
         )
 
     def finish(self) -> list[SlamResult]:
@@ -486,6 +503,8 @@ class SlamPipeline:
             sensors=self.sensors,
             between=self._between,
             kf_rel=self._kf_rel,
+            kf_points=self._kf_points,
+            kf_links=self._kf_links,
         )
         # (session, name) in the order to finish them: iSAM2's estimate before the batch solve
         order = [("ekf", "ekf"), ("graph", "isam2"), ("graph", "batch")]
@@ -555,6 +574,8 @@ def _result(
     final=True,
     between=(),
     kf_rel=(),
+    kf_points=(),
+    kf_links=(),
 ) -> SlamResult:
     """Finish one session's backend and package its result; ``shared`` (s) is the reading
     and front-end time that every backend of the pass is charged with. Not ``final``: the
@@ -585,6 +606,8 @@ def _result(
     poses = np.array([p[1] for p in traj]).reshape(-1, 3)
     scan_t, scan_p = place_scans(times, poses, between, kf_rel)
     return SlamResult(
+        keyframe_scans=list(kf_points[: len(times)]),
+        keyframe_links=list(kf_links[: max(len(times) - 1, 0)]),
         scan_times=scan_t,
         scan_poses=scan_p,
         loop_closures=[c.to_json() for c in sess.loops.closures] if sess.loops else [],

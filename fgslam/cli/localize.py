@@ -1,0 +1,113 @@
+"""``fgslam localize``: localization on a saved session (docs/sessions.md)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+
+from fgslam.cli.common import add_log_arguments, progress_bar, reader_options
+from fgslam.errors import UserError
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "localize",
+        help="track the robot's pose on a map saved by `fgslam run --save`",
+        description=(
+            "Localize a log on a saved session: the map stays fixed, each scan is matched "
+            "against the map's scans near the pose the wheels predict, the last matched poses "
+            "smoothed with the odometry between them. Without --initial-pose the pose is "
+            "found by a global search over the whole map (every place, every heading), "
+            "confirmed over several scans; a robot lost (matches failing in a row: kidnapped) "
+            "is searched for again. Writes trajectory.tum (every localized scan), "
+            "report.json (when it was localized and how confidently, lost spells, speed, the "
+            "error against the log's truth if it has one) and map.png (the map's grid with "
+            "the path) into --out. The [localize] section of the configuration sets the "
+            "search (fgslam config --show)."
+        ),
+    )
+    add_log_arguments(p, "DIR", "output directory", config=True, tolerant=True)
+    p.add_argument("--map", required=True, metavar="SESSION", help="session folder to localize on")
+    p.add_argument(
+        "--initial-pose",
+        metavar="X,Y,THETA",
+        type=_pose,
+        help="the start pose in the map's frame (m, m, rad); default: search the whole map",
+    )
+    p.set_defaults(func=run)
+
+
+def _pose(text: str) -> tuple[float, float, float]:
+    try:
+        x, y, th = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected X,Y,THETA (m, m, rad), got {text!r}") from None
+    if not all(math.isfinite(v) for v in (x, y, th)):
+        raise argparse.ArgumentTypeError(f"not finite: {text!r}")
+    return x, y, th
+
+
+def run(args: argparse.Namespace) -> int:
+    from fgslam.cli.run import _run_config
+    from fgslam.config import check_against_log
+    from fgslam.io import safeio
+    from fgslam.io.formats import open_log
+    from fgslam.session import load_session
+    from fgslam.session.localize import Localizer
+    from fgslam.session.plot import plot_localization
+
+    session = load_session(args.map)
+    reader = open_log(args.log, **reader_options(args))
+    cfg = _run_config(reader, args.config, args.log)
+    saved = session.robot_config()
+    try:
+        check_against_log(saved, reader.config, str(args.log))
+    except UserError as e:
+        raise UserError(f"the map {args.map} was made by another robot: {e}") from None
+    d = reader.meta.get("duration")
+    total = float(d) if isinstance(d, int | float) else None
+    bar = progress_bar("localize")
+    first: list[float] = []
+
+    def progress(t: float) -> None:
+        if not first:
+            first.append(t)
+        if total:
+            bar(min(t - first[0], total), total)
+
+    loc = Localizer(session, cfg, args.initial_pose, progress=progress)
+    try:
+        for ev in reader:
+            loc.add(ev)
+        res = loc.finish()
+    finally:
+        bar.close()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    rep = res.report()
+    rep["map"] = str(args.map)
+    rep["log"] = str(args.log)
+    res.write_trajectory(out / "trajectory.tum")
+    plot_localization(session, res, out / "map.png")
+    safeio.write_text(out / "report.json", json.dumps(rep, indent=1))
+    loc_at = rep["localized_at"]
+    if loc_at is None:
+        print(f"not localized: {rep['scans']} scans, no answer of the global search confirmed")
+    else:
+        msg = (
+            f"localized at t = {loc_at:.2f} s ({rep['first_localization']['how']}); "
+            f"{rep['scans_localized']} of {rep['scans']} scans localized, "
+            f"{rep['relocalizations']} relocalizations, {len(rep['lost'])} times lost; "
+            f"{rep['real_time_factor']}x real time"
+        )
+        err = rep.get("error_vs_truth")
+        if err:
+            msg += (
+                f"; against the truth: {err['position_rmse_m']:.3f} m, "
+                f"{err['heading_rmse_deg']:.2f} deg RMSE"
+            )
+        print(msg)
+    print(f"wrote {out}/trajectory.tum, report.json, map.png")
+    return 0 if loc_at is not None else 1

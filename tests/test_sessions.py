@@ -1,0 +1,287 @@
+"""Map reuse (issue 35): saved sessions, their occupancy grid, localization on them."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from fgslam.config import load_config
+from fgslam.events import TruthPose
+from fgslam.io.formats import open_log
+from fgslam.scanmatch import scan_points
+from fgslam.session import Session, SessionError, load_session, save_session
+from fgslam.session.grid import PIXEL_FREE, PIXEL_OCCUPIED, PIXEL_UNKNOWN
+from fgslam.session.localize import Localizer
+from fgslam.sim import simulate_to_log
+from fgslam.sim.raycast import raycast
+from fgslam.sim.scenes import BOX_ROOM
+from fgslam.sim.world import load_world
+from fgslam.slam.runner import run_backends
+
+# -- a session of a box room: scans from known poses --------------------------------------
+
+
+def _box_session(seed: int = 0, n: int = 6) -> Session:
+    cfg = load_config(None)
+    bearings = cfg.laser.bearings
+    segs = np.asarray(BOX_ROOM, dtype=float)
+    rng = np.random.default_rng(seed)
+    poses = np.column_stack(
+        [rng.uniform(1, 7, n), rng.uniform(1, 4, n), rng.uniform(-math.pi, math.pi, n)]
+    )
+    scans = []
+    for p in poses:  # the laser at the robot's origin (laser_xy 0, 0 below)
+        r = raycast(p[:2], p[2] + bearings, segs)
+        scans.append(scan_points(r + rng.normal(0, 0.005, r.shape), bearings, max_range=20.0))
+    covs = np.tile(np.diag([1e-4, 1e-4, 1e-5]), (n, 1, 1))
+    covs[0] = np.nan  # a keyframe without a covariance
+    scans[2] = None  # and one without a laser scan
+    return Session(
+        times=np.arange(n) * 1.5,
+        poses=poses,
+        covs=covs,
+        scans=scans,
+        laser_xy=(0.0, 0.0),
+        config=cfg.to_dict(),
+        landmarks=[{"id": 3, "kind": "line", "mean": [1.0, 0.5], "cov": [[1e-4, 0], [0, 1e-4]]}],
+        constraints=[
+            {"kind": "loop", "from": 0, "to": 4, "pose": [1.0, 2.0, 0.1], "cov": np.eye(3).tolist()}
+        ],
+        calibration=None,
+        meta={"log": "box"},
+    )
+
+
+def _read_yaml(path) -> dict:
+    """map_server's map.yaml as a small reader sees it (key: value per line)."""
+    out = {}
+    for line in path.read_text().splitlines():
+        k, _, v = line.partition(":")
+        v = v.strip()
+        out[k.strip()] = json.loads(v) if v[:1] in "[0123456789-" else v
+    return out
+
+
+def test_a_session_reads_back_as_saved(tmp_path):
+    s = _box_session()
+    save_session(s, tmp_path / "map")
+    r = load_session(tmp_path / "map")
+    assert np.array_equal(r.times, s.times) and np.array_equal(r.poses, s.poses)
+    assert np.array_equal(r.covs, s.covs, equal_nan=True)
+    assert r.scans[2] is None
+    for a, b in zip(r.scans, s.scans, strict=True):
+        assert (a is None and b is None) or np.array_equal(a, b)
+    assert r.landmarks == s.landmarks and r.constraints == s.constraints
+    assert r.config == json.loads(json.dumps(s.config)) and r.meta == s.meta
+    assert r.robot_config().laser.n_beams == load_config(None).laser.n_beams
+
+
+def test_the_grid_is_a_map_server_map_of_the_room(tmp_path):
+    """map.pgm (P5) and map.yaml read by standard readers (Pillow; key: value): the walls
+    occupied, the room's inside free, outside the walls unknown."""
+    save_session(_box_session(n=10), tmp_path / "map")
+    img = np.array(Image.open(tmp_path / "map" / "map.pgm"))
+    meta = _read_yaml(tmp_path / "map" / "map.yaml")
+    assert meta["image"] == "map.pgm" and meta["mode"] == "trinary" and meta["negate"] == 0
+    res, (ox, oy, _) = meta["resolution"], meta["origin"]
+    rows = img.shape[0]
+
+    def pixel(x, y):
+        return img[rows - 1 - int((y - oy) // res), int((x - ox) // res)]
+
+    # walls: along the room's four sides, most cells occupied
+    wall = [pixel(x, 0.0 + 0.01) for x in np.arange(0.5, 7.5, 0.1)]
+    wall += [pixel(8.0 - 0.01, y) for y in np.arange(0.5, 4.5, 0.1)]
+    assert np.mean(np.array(wall) == PIXEL_OCCUPIED) > 0.8
+    inside = [  # away from the pillar, whose shadow may be unseen
+        pixel(x, y)
+        for x in np.arange(1.0, 7.0, 0.25)
+        for y in (1.0, 2.0, 4.0)
+        if math.hypot(x - 3.25, y - 2.75) > 1.5
+    ]
+    assert np.mean(np.array(inside) == PIXEL_FREE) > 0.9
+    assert set(np.unique(img)) <= {PIXEL_FREE, PIXEL_OCCUPIED, PIXEL_UNKNOWN}
+    assert pixel(ox + 0.5 * res, oy + 0.5 * res) == PIXEL_UNKNOWN  # beyond the walls
+
+
+def test_a_newer_or_corrupt_session_is_refused_by_name(tmp_path):
+    save_session(_box_session(), tmp_path / "map")
+    index = tmp_path / "map" / "session.json"
+    data = json.loads(index.read_text())
+    data["version"] = 99
+    index.write_text(json.dumps(data))
+    with pytest.raises(SessionError, match="newer fgslam"):
+        load_session(tmp_path / "map")
+    save_session(_box_session(), tmp_path / "b")
+    npz = tmp_path / "b" / "scans.npz"
+    raw = bytearray(npz.read_bytes())
+    raw[len(raw) // 2] ^= 0xFF
+    npz.write_bytes(bytes(raw))
+    with pytest.raises(SessionError, match="corrupt"):
+        load_session(tmp_path / "b")
+    (tmp_path / "c").mkdir()
+    (tmp_path / "c" / "session.json").write_text("{not json")
+    with pytest.raises(SessionError, match="corrupt"):
+        load_session(tmp_path / "c")
+    with pytest.raises(SessionError, match="no such session"):
+        load_session(tmp_path / "nowhere")
+
+
+def test_saving_never_overwrites_what_is_not_a_session(tmp_path):
+    s = _box_session()
+    other = tmp_path / "work"
+    other.mkdir()
+    (other / "notes.txt").write_text("mine")
+    with pytest.raises(SessionError, match="not overwritten"):
+        save_session(s, other)
+    assert [p.name for p in other.iterdir()] == ["notes.txt"]
+    newer = tmp_path / "newer"
+    save_session(s, newer)
+    data = json.loads((newer / "session.json").read_text())
+    data["version"] = 99
+    (newer / "session.json").write_text(json.dumps(data))
+    before = {p.name: p.read_bytes() for p in newer.iterdir()}
+    with pytest.raises(SessionError, match="not overwritten"):
+        save_session(s, newer)
+    assert {p.name: p.read_bytes() for p in newer.iterdir()} == before
+    # a session of ours is replaced, and nothing of the writing is left beside it
+    ok = tmp_path / "ok"
+    save_session(_box_session(seed=1), ok)
+    save_session(s, ok)
+    assert np.array_equal(load_session(ok).poses, s.poses)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["newer", "ok", "work"]
+
+
+# -- localization on the simulated corridor --------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def corridor(tmp_path_factory):
+    """A map of the corridor world's first 150 s (seed 1, laser iSAM2, saved and read back)
+    and another run of it (seed 2) as a log."""
+    d = tmp_path_factory.mktemp("corridor")
+    cfg = load_config(None)
+    world = load_world("corridor")
+    simulate_to_log(world, cfg, d / "map.log.gz", seed=1, duration=150.0)
+    simulate_to_log(world, cfg, d / "run.log.gz", seed=2, duration=150.0)
+    res = run_backends(open_log(d / "map.log.gz"), cfg, ["isam2"], "laser")[0]
+    save_session(Session.from_result(res, cfg), d / "session")
+    return load_session(d / "session"), list(open_log(d / "run.log.gz")), cfg
+
+
+def _truth(events):
+    tr = np.array([(e.t, e.x, e.y, e.theta) for e in events if isinstance(e, TruthPose)])
+    return tr
+
+
+def test_the_session_holds_the_run(corridor):
+    s, _, _ = corridor
+    assert s.keyframes > 20 and sum(p is not None for p in s.scans) == s.keyframes
+    kinds = {c["kind"] for c in s.constraints}
+    assert "scan" in kinds
+    assert all(np.shape(c["cov"]) == (3, 3) for c in s.constraints)
+
+
+@pytest.mark.parametrize("start", [20.0, 70.0, 110.0])
+def test_global_localization_finds_the_robot_anywhere_on_the_path(corridor, start):
+    """No initial pose, the log started part way: localized (the lab is symmetric under a
+    half turn but for its door: it may take the robot a lap's part to see it), then every
+    localized scan within 5 cm and 1 deg of the truth (target: 0.2 m, 3 deg)."""
+    s, events, cfg = corridor
+    loc = Localizer(s, cfg)
+    for e in events:
+        if e.t >= start:
+            loc.add(e)
+    res = loc.finish()
+    rep = res.report()
+    assert rep["localized"] and rep["localized_at"] < start + 45.0
+    assert rep["first_localization"]["how"] == "global search"
+    err = rep["error_vs_truth"]
+    assert err["position_max_m"] < 0.05 and err["heading_max_deg"] < 1.0
+    assert rep["scans_localized"] > 0.3 * rep["scans"]
+
+
+def test_a_kidnapped_robot_is_found_again(corridor):
+    """The log cut from 60 s to 100 s (the robot carried away: its odometry says it stood
+    still): lost, searched for, localized again; the poses after within 5 cm."""
+    s, events, cfg = corridor
+    first = [e for e in events if e.t < 60.0]
+    later = [e for e in events if e.t >= 100.0]
+    from dataclasses import replace
+
+    jumped = first + [replace(e, t=e.t - 40.0) for e in later]
+    loc = Localizer(s, cfg)
+    for e in jumped:
+        loc.add(e)
+    res = loc.finish()
+    rep = res.report()
+    assert rep["lost"] and rep["relocalizations"] >= 1
+    back = [e for e in rep["events"] if e["event"] == "localized" and e["t"] > 60.0]
+    assert back and back[0]["t"] < 60.0 + 30.0
+    # after the relocalization every localized pose is right again
+    ok = (res.times > back[0]["t"]) & np.isfinite(res.poses).all(axis=1)
+    tr = _truth(jumped)
+    x = np.interp(res.times[ok], tr[:, 0], tr[:, 1])
+    y = np.interp(res.times[ok], tr[:, 0], tr[:, 2])
+    assert np.hypot(res.poses[ok, 0] - x, res.poses[ok, 1] - y).max() < 0.05
+    # and nothing wrong was reported while it was lost: no pose between lost and found
+    lost_t = rep["lost"][0]["t"]
+    gap = (res.times > lost_t + 1e-3) & (res.times < back[0]["t"] - 1e-3)  # (rounded times)
+    assert not np.isfinite(res.poses[gap]).any()
+
+
+def test_a_wrong_initial_pose_is_found_wrong(corridor):
+    """An initial pose 1.5 m off: its matches fail, it is lost, and the global search finds
+    the robot."""
+    s, events, cfg = corridor
+    tr = _truth(events)
+    start = tr[np.searchsorted(tr[:, 0], 30.0)]
+    loc = Localizer(s, cfg, (start[1] + 1.5, start[2], start[3]))
+    for e in events:
+        if e.t >= 30.0:
+            loc.add(e)
+    rep = loc.finish().report()
+    assert rep["lost"]
+    assert any(e["how"] == "global search" for e in rep["events"] if e["event"] == "localized")
+    assert rep["error_vs_truth"]["position_max_m"] < 0.05 + 1.5  # the first guesses included
+
+
+def test_cli_run_save_then_localize(tmp_path, corridor, capsys):
+    from fgslam.cli import main
+
+    log = tmp_path / "short.log.gz"
+    simulate_to_log(load_world("corridor"), load_config(None), log, seed=3, duration=40.0)
+    argv = ["run", str(log), "--sensors", "laser", "--out", str(tmp_path / "o")]
+    assert main([*argv, "--save", str(tmp_path / "m")]) == 0
+    assert {p.name for p in (tmp_path / "m").iterdir()} == {
+        "session.json",
+        "scans.npz",
+        "map.pgm",
+        "map.yaml",
+    }
+    assert (
+        main(["localize", str(log), "--map", str(tmp_path / "m"), "--out", str(tmp_path / "l")])
+        == 0
+    )
+    rep = json.loads((tmp_path / "l" / "report.json").read_text())
+    assert rep["localized"] and rep["error_vs_truth"]["position_rmse_m"] < 0.03
+    assert (tmp_path / "l" / "trajectory.tum").stat().st_size > 0
+    assert (tmp_path / "l" / "map.png").stat().st_size > 0
+
+
+def test_cli_refuses_bad_sessions_in_one_line(tmp_path, one_line_error):
+    log = tmp_path / "s.log.gz"
+    simulate_to_log(load_world("corridor"), load_config(None), log, seed=3, duration=5.0)
+    one_line_error(
+        ["localize", str(log), "--map", str(tmp_path / "none"), "--out", "o"], "no such session"
+    )
+    (tmp_path / "x").mkdir()
+    (tmp_path / "x" / "keep.txt").write_text("mine")
+    one_line_error(
+        ["run", str(log), "--out", "o", "--save", str(tmp_path / "x")], "not overwritten"
+    )
+    assert (tmp_path / "x" / "keep.txt").read_text() == "mine"
