@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import argparse
-import json
 import math
-from pathlib import Path
 
 from fgslam.cli.common import add_log_arguments, progress_bar, reader_options
 from fgslam.errors import UserError
@@ -52,11 +50,10 @@ def _pose(text: str) -> tuple[float, float, float]:
 def run(args: argparse.Namespace) -> int:
     from fgslam.cli.run import _run_config
     from fgslam.config import check_against_log
-    from fgslam.io import safeio
     from fgslam.io.formats import open_log
     from fgslam.session import load_session
     from fgslam.session.localize import Localizer
-    from fgslam.session.plot import plot_localization
+    from fgslam.session.outputs import summary, write_localization
 
     session = load_session(args.map)
     reader = open_log(args.log, **reader_options(args))
@@ -84,30 +81,7 @@ def run(args: argparse.Namespace) -> int:
         res = loc.finish()
     finally:
         bar.close()
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    rep = res.report()
-    rep["map"] = str(args.map)
-    rep["log"] = str(args.log)
-    res.write_trajectory(out / "trajectory.tum")
-    plot_localization(session, res, out / "map.png")
-    safeio.write_text(out / "report.json", json.dumps(rep, indent=1))
-    loc_at = rep["localized_at"]
-    if loc_at is None:
-        print(f"not localized: {rep['scans']} scans, no answer of the global search confirmed")
-    else:
-        msg = (
-            f"localized at t = {loc_at:.2f} s ({rep['first_localization']['how']}); "
-            f"{rep['scans_localized']} of {rep['scans']} scans localized, "
-            f"{rep['relocalizations']} relocalizations, {len(rep['lost'])} times lost; "
-            f"{rep['real_time_factor']}x real time"
-        )
-        err = rep.get("error_vs_truth")
-        if err:
-            msg += (
-                f"; against the truth: {err['position_rmse_m']:.3f} m, "
-                f"{err['heading_rmse_deg']:.2f} deg RMSE"
-            )
-        print(msg)
-    print(f"wrote {out}/trajectory.tum, report.json, map.png")
-    return 0 if loc_at is not None else 1
+    rep = write_localization(session, res, args.out, {"map": str(args.map), "log": str(args.log)})
+    print(summary(rep))
+    print(f"wrote {args.out}/trajectory.tum, report.json, map.png")
+    return 0 if rep["localized_at"] is not None else 1

@@ -63,6 +63,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="give up if a device has not answered after S s (default 30)",
     )
     add_scanmatch_arguments(p)
+    p.add_argument(
+        "--map",
+        metavar="SESSION",
+        help="localize on this saved session (`fgslam run --save`) instead of mapping: the "
+        "outputs of `fgslam localize` (docs/sessions.md)",
+    )
     p.set_defaults(func=run)
 
 
@@ -71,6 +77,13 @@ def run(args: argparse.Namespace) -> int:
     from fgslam.online.loop import StopSignal, device_summary, online_main
 
     cfg = with_options(load_config(args.config), config_options(args))
+    session = None
+    if args.map:
+        from fgslam.config import check_against_log
+        from fgslam.session import load_session
+
+        session = load_session(args.map)  # refused before any device is opened
+        check_against_log(session.robot_config(), cfg, f"the map {args.map}")
     with StopSignal("stopping: processing what has arrived, writing outputs") as sig:
         run, rep = online_main(
             cfg,
@@ -86,10 +99,17 @@ def run(args: argparse.Namespace) -> int:
             connect_timeout=args.connect_timeout,
             stop=sig.event,
             meta={"command": " ".join(sys.argv)},
+            session=session,
         )
     print(f"stopped ({run.reason}); events: {dict(sorted(run.events.items()))}")
     print("devices: " + " | ".join(device_summary(n, s) for n, s in run.status.items()))
     if args.record:
         print(f"recorded every byte received into {args.record} (fgslam replay to decode)")
+    if session is not None:
+        from fgslam.session.outputs import summary
+
+        print(summary(rep))
+        print(f"wrote {args.out}/trajectory.tum, report.json, map.png")
+        return 0
     print_summary(rep, args.out)
     return 0

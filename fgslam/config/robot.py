@@ -533,13 +533,17 @@ class LocalizeParams:
     A scan is matched when the robot has moved ``every_distance`` or turned ``every_angle``
     since the last matched one (a standing robot costs nothing), against the local map at
     its predicted pose (the scans of the map keyframes within ``radius``, at most
-    ``max_scans``), within the matcher's window; the last ``window`` matched poses are
-    smoothed with the wheel odometry between them. Global localization (no initial pose,
-    or lost after ``lost_after`` failed matches in a row) searches around every place (map
-    keyframes ``spacing`` apart) over +-``spacing`` and every heading (steps of
-    ``global_step``), keeps up to ``hypotheses`` distinct answers and tracks them; it is
-    localized when the best of them has passed ``confirm`` matches in a row and every other
-    has failed or its mean score is ``confirm_margin`` lower."""
+    ``max_scans``), within the matcher's window, unless less than ``min_view`` of its
+    returns fall where the map's grid saw something (off the map: the odometry carries the
+    pose); the last ``window``
+    matched poses are smoothed with the wheel odometry between them. Lost after
+    ``lost_after`` failed matches in a row, it searches near the pose the odometry carries
+    on. Global localization (no initial pose, or lost for ``search_after`` m) searches around
+    every place (map keyframes ``spacing`` apart) over +-``spacing`` and every heading
+    (steps of ``global_step``), keeps up to ``hypotheses`` distinct answers that the grid
+    does not contradict (at most ``max_see_through`` of the returns on free cells) and tracks
+    them; it is localized when the best of them has passed ``confirm`` matches in a row and
+    every other has failed or its mean score is ``confirm_margin`` lower."""
 
     spacing: float = param(2.0, "m", "between the places the map is cut into")
     radius: float = param(3.0, "m", "a place's map keyframes lie within this")
@@ -547,11 +551,14 @@ class LocalizeParams:
     every_distance: float = param(0.1, "m", "travel before the next scan is matched")
     every_angle: float = param(math.radians(3.0), "rad", "turn before the next scan is matched")
     window: int = param(10, "count", "matched poses smoothed together with the odometry")
-    lost_after: int = param(8, "count", "failed matches in a row: lost, search globally")
+    min_view: float = param(0.3, "1", "fewer returns where the map saw something: off the map")
+    max_see_through: float = param(0.15, "1", "more returns on free map cells: a wrong answer")
+    lost_after: int = param(8, "count", "failed matches in a row: lost")
+    search_after: float = param(8.0, "m", "lost this much travel: search globally (kidnapped)")
     hypotheses: int = param(8, "count", "distinct answers of a global search tracked")
     confirm: int = param(5, "count", "matches in a row confirming a global answer")
     confirm_margin: float = param(0.1, "1", "... whose mean score beats every other's by this")
-    global_step: float = param(math.radians(1.0), "rad", "heading step of the global search")
+    global_step: float = param(math.radians(2.0), "rad", "heading step of the global search")
     cache_size: int = param(64, "count", "places' references kept")
 
     def __post_init__(self) -> None:

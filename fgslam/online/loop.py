@@ -43,6 +43,8 @@ from fgslam.events import Event, SonarReading
 from fgslam.io.ordering import REORDER_WINDOW, SourceMerger
 from fgslam.online.device_process import DeviceProcess
 from fgslam.online.ports import LASER, ODOMETRY, DevicePorts, sonar_name, start_emulators
+from fgslam.session import Session
+from fgslam.session.localize import Localizer
 from fgslam.slam.runner import SlamPipeline, SlamResult
 
 STATUS_INTERVAL = 0.25  # wall s between status updates
@@ -95,8 +97,11 @@ def run_online(
     silent_after: float = SILENT_AFTER,
     checkpoint: Callable[[SlamResult], None] | None = None,
     checkpoint_every: float = CHECKPOINT_EVERY,
+    session: Session | None = None,
 ) -> OnlineResult:
-    """Run the front end and ``backend`` on the events of started ``ports`` as they come.
+    """Run the front end and ``backend`` on the events of started ``ports`` as they come;
+    with a saved ``session``, localization on it instead (:class:`Localizer`; no
+    checkpoints; the result a :class:`LocalizationResult`).
 
     Events are merged by device time (:class:`fgslam.io.ordering.SourceMerger`): an event goes
     on once every device has delivered one as late, so the order, and the map, do not depend
@@ -112,7 +117,13 @@ def run_online(
     processed since the last one. A device that disconnects is reopened by its driver thread
     while the others go on. Raises RuntimeError if a device thread failed (a bug)."""
     stop = stop or threading.Event()
-    pipe = SlamPipeline(cfg, [backend], sensors, reorder_window=reorder_window, count_idle=False)
+    if session is not None:
+        pipe: SlamPipeline | Localizer = Localizer(session, cfg, count_idle=False)
+        checkpoint = None
+    else:
+        pipe = SlamPipeline(
+            cfg, [backend], sensors, reorder_window=reorder_window, count_idle=False
+        )
     merger = SourceMerger(ports.names)
     clock = ports.clock
     counts: Counter = Counter()
@@ -152,7 +163,12 @@ def run_online(
         errors = ports.errors()
         if errors:
             raise RuntimeError(f"a device thread failed: {errors[0]!r}") from errors[0]
-        if checkpoint is not None and pipe.keyframes and pipe.last_t >= next_checkpoint:
+        if (
+            checkpoint is not None
+            and isinstance(pipe, SlamPipeline)
+            and pipe.keyframes
+            and pipe.last_t >= next_checkpoint
+        ):
             if next_checkpoint > -math.inf:  # the first keyframe only starts the clock
                 checkpoint(pipe.snapshot())
             next_checkpoint = pipe.last_t + checkpoint_every
@@ -165,7 +181,8 @@ def run_online(
         counts[source(ev)] += 1
         take(merger.push(source(ev), ev), streaming=False)
     take(merger.flush(), streaming=False)
-    res = pipe.finish()[0]
+    done = pipe.finish()
+    res = done[0] if isinstance(done, list) else done
     res.stats.update({f"events_{k}": v for k, v in counts.items()})
     if merger.late:
         res.stats["events_late"] = merger.late
@@ -203,24 +220,14 @@ def device_summary(name: str, s: dict[str, Any]) -> str:
     return " ".join(parts)
 
 
-def status_line(
-    pipe: SlamPipeline, status: dict[str, dict[str, Any]], lag: float, waiting: bool = False
-) -> str:
-    """One line: keyframes, pose, landmarks by kind, last keyframe's latency, how far the
-    pipeline is behind the clock, and every device's state and fault counters."""
+def status_line(pipe, status: dict[str, dict[str, Any]], lag: float, waiting: bool = False) -> str:
+    """One line: the estimate (``pipe.status_text()``: a :class:`SlamPipeline`'s keyframes,
+    pose, landmarks and latency, or a localizer's state and pose), how far the pipeline is
+    behind the clock, and every device's state and fault counters."""
     devices = " | ".join(device_summary(n, s) for n, s in status.items())
     if waiting:
         return f"waiting for data | {devices}"
-    pose = pipe.pose()
-    if pose is None:
-        where = "no keyframe yet"
-    else:
-        where = f"x {pose[0]:7.2f} y {pose[1]:7.2f} th {math.degrees(pose[2]):6.1f} deg"
-    lm = pipe.landmark_counts()
-    kinds = " ".join(f"{lm.get(k, 0)} {k}s" for k in ("line", "corner", "point"))
-    lat = pipe.last_latency()
-    lat_s = f"{lat * 1e3:4.0f} ms" if lat is not None else "  - ms"
-    return f"kf {pipe.keyframes:4d} | {where} | {kinds} | kf {lat_s} | lag {lag:4.1f} s | {devices}"
+    return f"{pipe.status_text()} | lag {lag:4.1f} s | {devices}"
 
 
 # ---------------------------------------------------------------------------------------------
@@ -497,12 +504,14 @@ def online_main(
     stop: threading.Event | None = None,
     status_stream: Any = None,
     meta: dict[str, Any] | None = None,
+    session: Session | None = None,
 ) -> tuple[OnlineResult, dict[str, Any]]:
     """``fgslam online``: open the ports, run SLAM as data arrives until ``stop`` or the end
     of the data, write the outputs of ``fgslam run`` into ``out``; returns the run and its
     report. Meanwhile, every :data:`CHECKPOINT_EVERY` s of log time, the estimate so far is
     written there (trajectory.tum, map.json, report.json with ``checkpoint``; atomically),
-    so that a run that is killed keeps its outputs up to the last checkpoint."""
+    so that a run that is killed keeps its outputs up to the last checkpoint. With a saved
+    ``session``: localization on it, and the outputs of ``fgslam localize``."""
     from fgslam.slam.outputs import write_outputs
 
     if idle_timeout <= 0:
@@ -555,9 +564,14 @@ def online_main(
                 idle_timeout=idle_timeout,
                 on_status=display,
                 checkpoint=save,
+                session=session,
             )
         finally:
             display.close()
     run.status = ports.status()  # after the drivers stopped: final counters
+    if session is not None:
+        from fgslam.session.outputs import write_localization
+
+        return run, write_localization(session, run.result, out, {"online": True})
     rep = write_outputs(run.result, out)
     return run, rep

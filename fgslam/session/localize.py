@@ -8,31 +8,44 @@ turn, so that a place passed both ways keeps the scans that looked each way) in 
 frame, thinned to one point per matcher cell, prepared for matching
 (:class:`~fgslam.scanmatch.Reference`, with the laser origins) and kept (``cache_size``)
 while the same keyframes make it. Places: map keyframes at least ``spacing`` apart; every
-map keyframe lies within ``spacing`` of one.
+map keyframe lies within ``spacing`` of one. The map's occupancy grid (:class:`MapCheck`)
+says where the map saw something and what it saw free.
 
 Tracking: a scan is matched when the robot has moved ``every_distance`` or turned
 ``every_angle`` since the last matched scan; the wheel odometry since then predicts its pose,
-the matcher searches its window around it against the place nearest the prediction. The last
-``window`` matched poses, each with its match as a prior (the map is fixed, so a match is an
-absolute measurement of the pose: the match's covariance, body tangent) and the wheel
-odometry between consecutive ones (:func:`factors.odometry.preintegrate`), are solved
-together (Levenberg-Marquardt); the oldest carries the marginal of the pose before it. A scan
-not matched is placed by the wheel odometry from the last matched one. ``lost_after`` matches
-in a row that failed or were weak (scored below the matcher's own threshold, which tells
-places apart; the tracking thresholds are the scan odometry's; the overlap is no sign: where
-the robot sees beyond the local map's scans it is low at the right pose): lost, back to the
-global search (a kidnapped robot).
+the matcher searches its window around it against the local map there. The last ``window``
+matched poses, each with its match as a prior (the map is fixed, so a match is an absolute
+measurement of the pose: the match's covariance, body tangent) and the wheel odometry between
+consecutive ones (:func:`factors.odometry.preintegrate`), are solved together
+(Levenberg-Marquardt); the oldest carries the information of the poses before it. A scan not
+matched is placed by the wheel odometry from the last matched one. Where less than
+``min_view`` of the scan's returns at the prediction fall where the map saw something (the
+robot has left the mapped part), the scan is not matched: the odometry carries the pose on,
+and nothing counts as failed. ``lost_after`` matches in a row that failed or that the map
+contradicts (more than ``max_see_through`` of the returns on cells the map saw free) and the
+robot is lost. Lost, a scan every ``RECOVER_EVERY`` of travel is searched for around the
+pose the odometry carried on (a window growing with the travel since, up to ``spacing``:
+the robot came back into the mapped part), and once it has travelled ``search_after`` also
+by the global search. When the map contradicted most of the failures (at the match, or at
+the prediction where the match failed), the robot was carried away (kidnapped): the global
+search alone, at once. The tracking thresholds are the scan odometry's; a weak score or
+overlap is no sign of being lost: where the robot sees much the map did not, they are low at
+the right pose.
 
 Global search (no ``initial_pose``, or lost): the scan is matched against every place with a
-window of +-``spacing`` and every heading (steps of ``global_step``); the passing answers,
-best score first, at most ``hypotheses`` of them at least 0.5 m or 10 deg apart, are tracked
-like the pose (odometry, local matches, the loop closures' score threshold); a hypothesis
-dies after ``lost_after`` failed matches in a row. Localized: the one whose last
-``confirm`` matches score best on average has passed ``confirm`` matches in a row, and no
-other is left or every other's average is ``confirm_margin`` lower (in a room symmetric
-under a half turn both fit until something that breaks the symmetry comes into view). All
-dead: a new search at once; a search that found nothing: again once the robot moved
-``spacing`` / 2 or turned 30 deg.
+window of +-``spacing`` and every heading (steps of ``global_step``). The answers that pass
+(the loop closures' score threshold) and that the map does not contradict (at least
+``min_view`` of their returns where the map saw something, at most ``max_see_through`` on
+cells it saw free), best score first, at most ``hypotheses`` of them at least 0.5 m or
+10 deg apart, are the candidates. When the best does not score ``confirm_margin`` above the
+next, none stands out (a corridor's doors, a symmetric room seen from its middle: the truth
+may not even be among them) and the search is made again further on. Otherwise the answers
+are tracked like the pose; one dies after ``lost_after`` failed matches in a row. Localized:
+the one whose last ``confirm`` matches score best on average has passed ``confirm`` matches
+in a row, and no other is left or every other's average is ``confirm_margin`` lower (in a
+room symmetric under a half turn both fit until something that breaks the symmetry comes
+into view). All dead: a new search at once; a search that found nothing: again once the
+robot moved ``spacing`` / 2 (doubling each time, up to 16 spacings) or turned 30 deg.
 
 Frames: world = the saved session's; scan points in the robot frame; (x, y, theta) m, rad."""
 
@@ -68,8 +81,12 @@ from fgslam.session.store import Session
 # a place's overlapping scans thinned to one point per matcher cell: else the local lines of
 # ICP are fitted to a few centimetres of stacked returns (overlap 0.07 instead of 0.48)
 VOXEL = 1.0
+CHECK_RESOLUTION = 0.1  # m, the cells of :class:`MapCheck` (a return within a cell agrees)
 HYP_XY, HYP_THETA = 0.5, math.radians(10.0)  # global answers nearer than this: one
+RECOVER_XY, RECOVER_THETA, RECOVER_GROWTH = 0.5, 0.25, 0.2  # m, rad, per metre travelled
+RECOVER_EVERY = 0.3  # m of travel between the searches near the dead-reckoned pose
 RETRY_XY, RETRY_THETA = 0.5, math.radians(30.0)  # of spacing (x), absolute (theta)
+RETRY_MAX = 16.0  # spacings
 
 
 class Places:
@@ -136,6 +153,37 @@ class Places:
         return ref
 
 
+class MapCheck:
+    """The saved map's occupancy grid (``CHECK_RESOLUTION`` cells) asked where a scan's
+    returns fall at a pose: on or next to an occupied cell (the map agrees), on a free cell
+    (the map saw through there: it contradicts the pose, unless something moved), or where
+    the map saw nothing."""
+
+    def __init__(self, session: Session) -> None:
+        from scipy.ndimage import binary_dilation
+
+        g = session.grid(CHECK_RESOLUTION)
+        self.grid = g
+        occ = binary_dilation(g.occupied(), iterations=1)
+        self.occupied = occ
+        self.free = g.free() & ~occ
+
+    def check(self, pose: NDArray[np.float64], points) -> tuple[float, float]:
+        """(view, contradiction): the fraction of the returns (robot-frame points, m) at
+        ``pose`` (world) that fall where the map saw something, and of those the fraction on
+        free cells."""
+        w = transform_points(np.asarray(pose, dtype=float), np.asarray(points, dtype=float))
+        row, col = self.grid.cell_of(w)
+        rows, cols = self.occupied.shape
+        inside = (row >= 0) & (row < rows) & (col >= 0) & (col < cols)
+        r, c = row[inside], col[inside]
+        occ = self.occupied[r, c]
+        free = self.free[r, c]
+        known = int(occ.sum() + free.sum())
+        view = known / max(len(w), 1)
+        return view, (float(free.sum()) / known if known else 0.0)
+
+
 @dataclass
 class _Track:
     """A pose being tracked (the localized one, or a hypothesis of the global search)."""
@@ -144,6 +192,7 @@ class _Track:
     passes: int = 0
     fails: int = 0
     score: float = 0.0  # the last match's
+    contradicted: int = 0  # of the failures in a row, those the map contradicted
     scores: list[float] = field(default_factory=list)  # its matches' since the global search
 
     def recent(self, n: int) -> float:
@@ -246,8 +295,13 @@ class Localizer:
         initial_pose: tuple[float, float, float] | None = None,
         params: LocalizeParams | None = None,
         progress: Callable[[float], None] | None = None,
+        count_idle: bool = True,
     ) -> None:
+        """``count_idle``: the wall time of the result is the time since the localizer was
+        made (a log); without (online, waiting for data), only the time spent working."""
         self.t0 = time.perf_counter()
+        self.count_idle = count_idle
+        self.busy_seconds = 0.0
         self.cfg = cfg
         self.p = params or LocalizeParams.from_config(cfg)
         # tracking: a small window around a good prediction, the scan odometry's thresholds;
@@ -272,6 +326,7 @@ class Localizer:
             angular_step=self.p.global_step,
         )
         self.places = Places(session, self.p, self.mp)
+        self.map_check = MapCheck(session)
         self.progress = progress
         self.reorder = ReorderBuffer(REORDER_WINDOW)
         self.frontend = FrontEnd(cfg, "laser", select=self._select)
@@ -296,6 +351,10 @@ class Localizer:
         self._placed: list[tuple[int, NDArray[np.float64]]] = []  # per scan (anchor, rel)
         self._track: _Track | None = None
         self._hyps: list[_Track] = []
+        self._lost_pose: NDArray[np.float64] | None = None  # dead reckoning since lost
+        self._lost_travel = 0.0  # m since lost
+        self._next_recover = 0.0  # m of travel since lost at which to search near it next
+        self._retry = RETRY_XY  # spacings of travel before the next global search
         self._window: deque = deque()  # (scan index, t, match pose, match cov, odometry in)
         # the past's information on the window's oldest pose: (its scan index, mean, cov)
         self._carry: tuple[int, NDArray[np.float64], NDArray[np.float64]] | None = None
@@ -310,8 +369,21 @@ class Localizer:
     # -- feeding
 
     def add(self, ev: Event) -> None:
+        """Take one event (any order within the reorder window)."""
+        t0 = time.perf_counter()
         for e in self.reorder.push(ev):
             self._process(e)
+        self.busy_seconds += time.perf_counter() - t0
+
+    def status_text(self) -> str:
+        """The state in one line (``fgslam online --map``'s status)."""
+        pose = self.pose()
+        if pose is not None:
+            where = f"x {pose[0]:7.2f} y {pose[1]:7.2f} th {math.degrees(pose[2]):6.1f} deg"
+            return f"localized | {where} | matched {sum(self.matched)} of {len(self.times)}"
+        if self._hyps:
+            return f"confirming {len(self._hyps)} answers of the global search"
+        return f"searching the map ({self.stats['global_searches']} global searches)"
 
     def _process(self, ev: Event) -> None:
         self.last_t = ev.t
@@ -349,6 +421,9 @@ class Localizer:
         self._since_search = compose_poses(self._since_search, step)
         for h in self._hyps:
             h.pose = compose_poses(h.pose, step)
+        if self._lost_pose is not None:
+            self._lost_pose = compose_poses(self._lost_pose, step)
+            self._lost_travel += math.hypot(step[0], step[1])
         if self._track is not None:
             self._track.pose = compose_poses(self._track.pose, step)
         due = (
@@ -392,9 +467,17 @@ class Localizer:
             self._last_sample_t = self._samples.popleft()[0]
         self._last_t_window = t
 
-    def _local(self, pose: NDArray[np.float64], points, confirm: bool = False) -> Match:
+    def _local(self, pose: NDArray[np.float64], points, confirm: bool = False) -> Match | None:
+        """The scan matched against the local map at ``pose``; None when the local map's
+        scans looked at less than ``min_view`` of the scan placed there (off the map)."""
+        view, _ = self.map_check.check(pose, points)
+        if view < self.p.min_view:
+            self.stats["off_map"] = self.stats.get("off_map", 0) + 1
+            return None
         ref = self.places.reference(pose[:2])
         m = match(ref, points, pose, self.mp_confirm if confirm else self.mp)
+        if confirm and m.ok and self._contradicted(m.pose, points):
+            m = dataclasses.replace(m, ok=False, reason="the map saw through its returns")
         self.stats["matches"] += 1
         if not m.ok:
             self.stats["matches_failed"] += 1
@@ -406,14 +489,26 @@ class Localizer:
         m = self._local(tr.pose, points)
         self._last_t_matched = t
         self._moved = np.zeros(3)
-        # a weak match (below the matcher's own thresholds) still places the pose, but a
-        # run of them says the map is not where the pose is: a kidnapped robot
-        mp = self.cfg.matcher
-        strong = m.ok and m.score >= mp.min_score
-        tr.fails = 0 if strong else tr.fails + 1
+        if m is None:  # off the map: the odometry carries the pose, nothing is wrong
+            return False
+        # a match the map contradicts (its returns on cells the map saw free) still places
+        # the pose, but a run of them, or of failed matches, says the map is not where the
+        # pose is: a kidnapped robot. A weak match where the robot sees much the map did not
+        # (a partly mapped room) is no sign of it.
+        # (a failed match: the map asked at the prediction)
+        through = self.map_check.check(m.pose if m.ok else tr.pose, points)[1]
+        good = m.ok and through <= self.p.max_see_through
+        tr.fails = 0 if good else tr.fails + 1
+        seen_through = through > self.p.max_see_through
+        tr.contradicted = 0 if good else tr.contradicted + seen_through
         if tr.fails >= self.p.lost_after:
-            why = m.reason or f"score {m.score:.2f} < {mp.min_score}"
-            self._lose(t, f"{tr.fails} weak or failed matches in a row (the last: {why})")
+            why = m.reason or f"{100 * through:.0f} % of the returns on free map cells"
+            # most of the run contradicted: the map says the pose is wrong (carried away),
+            # not that the robot sees what it does not know: no search near it
+            moved = tr.contradicted > tr.fails // 2
+            self._lose(t, f"{tr.fails} failed or contradicted matches in a row (the last: {why})")
+            if moved:
+                self._lost_pose, self._search_now = None, True
             return False
         if not m.ok:
             tr.passes = 0
@@ -477,29 +572,84 @@ class Localizer:
 
     def _lose(self, t: float, why: str) -> None:
         self.events.append({"event": "lost", "t": round(t, 3), "why": why})
+        assert self._track is not None
+        self._lost_pose, self._lost_travel = self._track.pose.copy(), 0.0
+        self._next_recover = 0.0
         self._track = None
         self._pending_initial = False
         self._window.clear()
         self._carry = None
         self._hyps = []
-        self._search_now = True
+        self._search_now = False  # the search near the dead-reckoned pose first
+        self._since_search = np.zeros(3)
         self._last_t_window = None
 
     def _search_step(self, t: float, points) -> bool:
+        if self._lost_pose is not None and self._recover(t, points):
+            return True
         if self._hyps:
             return self._confirm_step(t, points)
         moved = math.hypot(self._since_search[0], self._since_search[1])
         if not self._search_now and (
-            moved < RETRY_XY * self.p.spacing and abs(self._since_search[2]) < RETRY_THETA
+            moved < self._retry * self.p.spacing and abs(self._since_search[2]) < RETRY_THETA
         ):
             return False
+        if self._lost_pose is not None and self._lost_travel < self.p.search_after:
+            return False  # the search near the dead-reckoned pose alone, for now
         self._since_search = np.zeros(3)
         self._search_now = False
-        self._hyps = self._global(points)
+        hyps = self._global(points)
+        if len(hyps) > 1 and hyps[0].score - hyps[1].score < self.p.confirm_margin:
+            # no answer stands out (a corridor's doors, a symmetric room seen from its
+            # middle): the truth may not even be among them; search again further on
+            self.stats["global_ambiguous"] = self.stats.get("global_ambiguous", 0) + 1
+            hyps = []
+        # nothing found: the robot is somewhere the map does not show; search less often
+        self._retry = RETRY_XY if hyps else min(2 * self._retry, RETRY_MAX)
+        self._hyps = hyps
         self._drop_samples(t)
         self._last_t_matched = t
         self._moved = np.zeros(3)
         return False
+
+    def _recover(self, t: float, points) -> bool:
+        """Lost: the scan searched for around the pose the odometry carried on since, in a
+        window growing with the travel (``RECOVER_XY`` + ``RECOVER_GROWTH`` per metre, at most
+        ``spacing``; the heading's ``RECOVER_THETA`` likewise, at most doubled: a half turn
+        away, a symmetric room's twin would fit), with the global answers' tests."""
+        assert self._lost_pose is not None
+        d = self._lost_travel
+        if d < self._next_recover:
+            return False
+        self._next_recover = d + RECOVER_EVERY
+        wide = dataclasses.replace(
+            self.mp_global,
+            search_xy=min(RECOVER_XY + RECOVER_GROWTH * d, self.p.spacing),
+            search_theta=min(RECOVER_THETA * (1.0 + RECOVER_GROWTH * d), 2 * RECOVER_THETA),
+            angular_step=0.0,
+        )
+        if self.map_check.check(self._lost_pose, points)[0] < self.p.min_view:
+            return False  # off the map: nothing to recover on
+        m = match(self.places.reference(self._lost_pose[:2]), points, self._lost_pose, wide)
+        self.stats["recovery_matches"] = self.stats.get("recovery_matches", 0) + 1
+        if not m.ok or self._contradicted(m.pose, points):
+            return False
+        tr = _Track(np.asarray(m.pose, float), passes=1, score=m.score, scores=[m.score])
+        self._track, self._lost_pose, self._hyps = tr, None, []
+        self._localized(t, tr, "search near the dead-reckoned pose", [tr])
+        self._drop_samples(t)
+        self._last_t_matched = t
+        self._moved = np.zeros(3)
+        return True
+
+    def _contradicted(self, pose: NDArray[np.float64], points) -> bool:
+        """A global answer the map contradicts: its returns fall where the map saw little
+        (less than ``min_view``) or, more than ``max_see_through`` of them, on free cells."""
+        view, through = self.map_check.check(pose, points)
+        bad = view < self.p.min_view or through > self.p.max_see_through
+        if bad:
+            self.stats["answers_contradicted"] = self.stats.get("answers_contradicted", 0) + 1
+        return bad
 
     def _global(self, points) -> list[_Track]:
         """Every place searched over +-spacing and every heading: the distinct passing
@@ -510,7 +660,7 @@ class Localizer:
         for a in range(len(self.places)):
             x, y = self.places.xy[a]
             m = match(self.places.reference((x, y)), points, (x, y, 0.0), wide)
-            if m.ok:
+            if m.ok and not self._contradicted(m.pose, points):
                 found.append(m)
         found.sort(key=lambda m: -m.score)
         hyps: list[_Track] = []
@@ -533,6 +683,8 @@ class Localizer:
         self._moved = np.zeros(3)
         for h in self._hyps:
             m = self._local(h.pose, points, confirm=True)
+            if m is None:  # off the map: no evidence either way
+                continue
             h.scores.append(m.score)
             if m.ok:
                 h.pose = np.asarray(m.pose, float)
@@ -584,9 +736,12 @@ class Localizer:
     # -- the end
 
     def finish(self) -> LocalizationResult:
+        """Process what the reorder buffer holds and return the result."""
+        t0 = time.perf_counter()
         for e in self.reorder.flush():
             self._process(e)
         self.frontend.finish()
+        self.busy_seconds += time.perf_counter() - t0
         n = len(self.times)
         poses = np.array(self.poses).reshape(n, 3)
         for i, (anchor, rel) in enumerate(self._placed):  # scans between matched ones
@@ -600,7 +755,7 @@ class Localizer:
             stats=dict(self.stats),
             truth_t=np.array(self.truth_t),
             truth=np.array(self.truth).reshape(-1, 3),
-            wall_time=time.perf_counter() - self.t0,
+            wall_time=time.perf_counter() - self.t0 if self.count_idle else self.busy_seconds,
             log_duration=(self.last_t - self.first_t) if self.first_t is not None else 0.0,
             places=len(self.places),
         )

@@ -442,6 +442,20 @@ class SlamPipeline:
         """Wall seconds spent in :meth:`add` so far (front end and backends)."""
         return self._busy
 
+    def status_text(self) -> str:
+        """The estimate in one line: keyframes, pose, landmarks by kind, the last keyframe's
+        latency (``fgslam online``'s status)."""
+        pose = self.pose()
+        if pose is None:
+            where = "no keyframe yet"
+        else:
+            where = f"x {pose[0]:7.2f} y {pose[1]:7.2f} th {math.degrees(pose[2]):6.1f} deg"
+        lm = self.landmark_counts()
+        kinds = " ".join(f"{lm.get(k, 0)} {k}s" for k in ("line", "corner", "point"))
+        lat = self.last_latency()
+        lat_s = f"{lat * 1e3:4.0f} ms" if lat is not None else "  - ms"
+        return f"kf {self.keyframes:4d} | {where} | {kinds} | kf {lat_s}"
+
     # -- the end
 
     def snapshot(self) -> SlamResult:

@@ -1,9 +1,12 @@
-"""map.png of ``fgslam localize``: the saved map's occupancy grid with the localized path,
-where it was localized and where it was lost."""
+"""The outputs of a localization (``fgslam localize``, ``fgslam online --map``):
+trajectory.tum (every localized scan), report.json and map.png (the saved map's occupancy
+grid with the localized path, where it was localized and where it was lost)."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 
@@ -51,3 +54,38 @@ def plot_localization(session, res, path: str | Path) -> None:
             fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
     finally:
         plt.close(fig)
+
+
+def write_localization(
+    session, res, out: str | Path, extra: dict[str, Any] | None = None
+) -> dict[str, Any]:
+    """Write trajectory.tum, map.png and report.json (its content, with ``extra``, returned)
+    into the folder ``out``, each atomically."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    rep = res.report()
+    rep.update(extra or {})
+    res.write_trajectory(out / "trajectory.tum")
+    plot_localization(session, res, out / "map.png")
+    safeio.write_text(out / "report.json", json.dumps(rep, indent=1))
+    return rep
+
+
+def summary(rep: dict[str, Any]) -> str:
+    """The localization in one line."""
+    loc_at = rep["localized_at"]
+    if loc_at is None:
+        return f"not localized: {rep['scans']} scans, no answer of the global search confirmed"
+    msg = (
+        f"localized at t = {loc_at:.2f} s ({rep['first_localization']['how']}); "
+        f"{rep['scans_localized']} of {rep['scans']} scans localized, "
+        f"{rep['relocalizations']} relocalizations, {len(rep['lost'])} times lost; "
+        f"{rep['real_time_factor']}x real time"
+    )
+    err = rep.get("error_vs_truth")
+    if err:
+        msg += (
+            f"; against the truth: {err['position_rmse_m']:.3f} m, "
+            f"{err['heading_rmse_deg']:.2f} deg RMSE"
+        )
+    return msg

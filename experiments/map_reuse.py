@@ -1,0 +1,187 @@
+"""Map reuse (issue 35): localization on a saved session, measured.
+
+Part ``corridor``: the simulated corridor world mapped once (seed 0, the whole route, laser
+iSAM2, saved and read back as a session); then runs of seeds 1-10, each started at a random
+time of its route with no initial pose (global localization), and each kidnapped once (the
+log cut between two random times: the robot is carried away, its odometry saw nothing).
+Success: localized, and every localized pose within 0.2 m and 3 deg of the truth (after the
+relocalization, for the kidnapping).
+
+Part ``freiburg``: Freiburg 079 (the corrected CARMEN log) cut in two halves at the median
+scan time; the first half mapped (laser iSAM2, the scan-matching defaults) and saved, the
+second localized on it without an initial pose; its relations error (the relations with both
+ends in the second half) beside one run over the whole log scored on the same relations,
+and the localization's speed.
+
+    python experiments/map_reuse.py [--part corridor|freiburg|all] [--seeds 10]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from fgslam.config import load_config, with_options
+from fgslam.evaluation import dense
+from fgslam.events import LaserScan, TruthPose
+from fgslam.io.formats import open_log
+from fgslam.io.readers.carmen import odometry_chain
+from fgslam.session import Session, load_session, save_session
+from fgslam.session.localize import Localizer
+from fgslam.sim import simulate_to_log
+from fgslam.sim.world import load_world
+from fgslam.slam.runner import run_backends
+
+DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+SCAN = {"odometry": "both", "keyframes": "motion", "loop_closures": "on"}
+OK_XY, OK_DEG = 0.2, 3.0
+
+
+def _errors(res, truth: np.ndarray, after: float = -math.inf) -> tuple[float, float]:
+    """Largest position (m) and heading (deg) error of the localized scans after ``after``."""
+    ok = np.isfinite(res.poses).all(axis=1) & (res.times > after)
+    if not ok.any():
+        return math.inf, math.inf
+    t, p = res.times[ok], res.poses[ok]
+    x = np.interp(t, truth[:, 0], truth[:, 1])
+    y = np.interp(t, truth[:, 0], truth[:, 2])
+    th = np.interp(t, truth[:, 0], np.unwrap(truth[:, 3]))
+    dth = np.degrees(np.abs(np.angle(np.exp(1j * (p[:, 2] - th)))))
+    return float(np.hypot(p[:, 0] - x, p[:, 1] - y).max()), float(dth.max())
+
+
+def _localize(session, cfg, events, initial=None):
+    loc = Localizer(session, cfg, initial)
+    t0 = time.perf_counter()
+    for e in events:
+        loc.add(e)
+    res = loc.finish()
+    return res, time.perf_counter() - t0
+
+
+def corridor(seeds: int) -> None:
+    cfg = load_config(None)
+    world = load_world("corridor")
+    with tempfile.TemporaryDirectory() as tmp:
+        d = Path(tmp)
+        simulate_to_log(world, cfg, d / "map.log.gz", seed=0)
+        res = run_backends(open_log(d / "map.log.gz"), cfg, ["isam2"], "laser")[0]
+        save_session(Session.from_result(res, cfg), d / "session")
+        session = load_session(d / "session")
+        print(f"map: seed 0, {session.keyframes} keyframes, {res.log_duration:.0f} s\n")
+        print(
+            "| seed | start (s) | localized after (s) | max error m / deg | kidnapped "
+            "a -> b (s) | found again after (s) | max error after m / deg | real time |"
+        )
+        print("|---|---|---|---|---|---|---|---|")
+        wins = kid_wins = 0
+        for seed in range(1, seeds + 1):
+            simulate_to_log(world, cfg, d / "run.log.gz", seed=seed)
+            events = list(open_log(d / "run.log.gz"))
+            truth = np.array([(e.t, e.x, e.y, e.theta) for e in events if isinstance(e, TruthPose)])
+            rng = np.random.default_rng(seed)
+            end = float(truth[-1, 0])
+            start = float(rng.uniform(0.0, end - 150.0))
+            res, wall = _localize(session, cfg, [e for e in events if e.t >= start])
+            rep = res.report()
+            exy, eth = _errors(res, truth)
+            win = rep["localized"] and exy <= OK_XY and eth <= OK_DEG
+            wins += win
+            after = f"{rep['localized_at'] - start:.1f}" if rep["localized"] else "never"
+            # kidnapped: the log cut from a to b
+            a = float(rng.uniform(30.0, end - 200.0))
+            b = float(a + rng.uniform(30.0, 120.0))
+            cut = [e for e in events if e.t < a] + [
+                dataclasses.replace(e, t=e.t - (b - a)) for e in events if e.t >= b
+            ]
+            kt = np.array([(e.t, e.x, e.y, e.theta) for e in cut if isinstance(e, TruthPose)])
+            kres, _ = _localize(session, cfg, cut)
+            back = [e["t"] for e in kres.events if e["event"] == "localized" and e["t"] > a]
+            kxy, kth = _errors(kres, kt, after=back[0] if back else math.inf)
+            kwin = bool(back) and kxy <= OK_XY and kth <= OK_DEG
+            kid_wins += kwin
+            found = f"{back[0] - a:.1f}" if back else "never"
+            print(
+                f"| {seed} | {start:.0f} | {after} | {exy:.3f} / {eth:.2f} | {a:.0f} -> {b:.0f} "
+                f"| {found} | {kxy:.3f} / {kth:.2f} | {res.log_duration / wall:.0f}x |",
+                flush=True,
+            )
+        print(
+            f"\nglobal localization right (within {OK_XY} m, {OK_DEG} deg): {wins} of {seeds}; "
+            f"kidnapped robot found again and right: {kid_wins} of {seeds}"
+        )
+
+
+def freiburg() -> None:
+    path = DATA / "freiburg-079-corrected.log.gz"
+    rel = dense.read_relations(DATA / "freiburg-079-corrected.relations")
+    chain = odometry_chain(path)
+    reader = open_log(path)
+    cfg = with_options(reader.config, {"scanmatch": SCAN})
+    events = list(reader)
+    scans = np.array([e.t for e in events if isinstance(e, LaserScan)])
+    split = float(np.median(scans))
+    half2 = rel[(rel[:, 0] >= split) & (rel[:, 1] >= split)]
+
+    def score(t, poses, relations):
+        est, has = dense.estimate_at_scans(chain, t, poses)
+        return dense.relations_error_chain(relations, chain, est, has)
+
+    def fmt(m):
+        return (
+            f"{m['trans_mean']:.3f} / {m['rot_mean_deg']:.2f} | {m['relations_used']} of "
+            f"{len(half2)}"
+        )
+
+    t0 = time.perf_counter()
+    whole = run_backends(events, cfg, ["isam2"], "laser")[0]
+    w_wall = time.perf_counter() - t0
+    first = run_backends([e for e in events if e.t < split], cfg, ["isam2"], "laser")[0]
+    with tempfile.TemporaryDirectory() as tmp:
+        save_session(Session.from_result(first, cfg), Path(tmp) / "s")
+        session = load_session(Path(tmp) / "s")
+    second = [e for e in events if e.t >= split]
+    res, wall = _localize(session, cfg, second)
+    rep = res.report()
+    print(f"Freiburg 079 cut at t = {split:.1f} s ({len(scans)} scans, {len(half2)} relations")
+    print("in the second half)\n")
+    print("| run | second half's relations: m / deg | used | wall (s) | real time |")
+    print("|---|---|---|---|---|")
+    print(
+        f"| one run over the whole log (iSAM2) | {fmt(score(*whole.every_scan, half2))} | "
+        f"{w_wall:.0f} | {whole.log_duration / w_wall:.0f}x |"
+    )
+    ok = np.isfinite(res.poses).all(axis=1)
+    print(
+        f"| first half mapped, second localized | {fmt(score(res.times[ok], res.poses[ok], half2))}"
+        f" | {wall:.0f} | {res.log_duration / wall:.0f}x |"
+    )
+    loc = rep["first_localization"] or {}
+    print(
+        f"\nlocalized at t = {rep['localized_at']} s ({loc.get('how')}, "
+        f"{loc.get('answers_found')} answers); lost {len(rep['lost'])} times; "
+        f"{rep['scans_localized']} of {rep['scans']} scans localized, "
+        f"{rep['scans_matched']} matched"
+    )
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--part", choices=["corridor", "freiburg", "all"], default="all")
+    ap.add_argument("--seeds", type=int, default=10)
+    args = ap.parse_args()
+    if args.part in ("freiburg", "all"):
+        freiburg()
+        print()
+    if args.part in ("corridor", "all"):
+        corridor(args.seeds)
+
+
+if __name__ == "__main__":
+    main()
