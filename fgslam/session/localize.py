@@ -42,10 +42,13 @@ next, none stands out (a corridor's doors, a symmetric room seen from its middle
 may not even be among them) and the search is made again further on. Otherwise the answers
 are tracked like the pose; one dies after ``lost_after`` failed matches in a row. Localized:
 the one whose last ``confirm`` matches score best on average has passed ``confirm`` matches
-in a row, and no other is left or every other's average is ``confirm_margin`` lower (in a
-room symmetric under a half turn both fit until something that breaks the symmetry comes
-into view). All dead: a new search at once; a search that found nothing: again once the
-robot moved ``spacing`` / 2 (doubling each time, up to 16 spacings) or turned 30 deg.
+in a row, and no other is left, or every other's average is ``confirm_margin`` lower and the
+robot has travelled ``CONFIRM_TRAVEL`` spacings since the search (a room symmetric under a
+half turn fits both ways until something that breaks the symmetry comes into view; a
+corridor's doors make a lead that does not last). All dead, or none decided after
+``EXPIRE_TRAVEL`` spacings: a new search at once; a search that found nothing: again once
+the robot moved ``spacing`` / 2 (doubling each time, up to ``RETRY_MAX`` spacings) or turned
+30 deg.
 
 Frames: world = the saved session's; scan points in the robot frame; (x, y, theta) m, rad."""
 
@@ -76,7 +79,7 @@ from fgslam.frontend.pipeline import FrontEnd
 from fgslam.io.ordering import REORDER_WINDOW, ReorderBuffer
 from fgslam.scanmatch import Match, Reference, match
 from fgslam.scanmatch.points import voxel_index
-from fgslam.session.store import Session
+from fgslam.session.store import Session, SessionError
 
 # a place's overlapping scans thinned to one point per matcher cell: else the local lines of
 # ICP are fitted to a few centimetres of stacked returns (overlap 0.07 instead of 0.48)
@@ -86,7 +89,9 @@ HYP_XY, HYP_THETA = 0.5, math.radians(10.0)  # global answers nearer than this: 
 RECOVER_XY, RECOVER_THETA, RECOVER_GROWTH = 0.5, 0.25, 0.2  # m, rad, per metre travelled
 RECOVER_EVERY = 0.3  # m of travel between the searches near the dead-reckoned pose
 RETRY_XY, RETRY_THETA = 0.5, math.radians(30.0)  # of spacing (x), absolute (theta)
-RETRY_MAX = 16.0  # spacings
+RETRY_MAX = 8.0  # spacings
+CONFIRM_TRAVEL = 1.0  # spacings of travel before one of several answers is taken
+EXPIRE_TRAVEL = 10.0  # spacings of travel after which undecided answers are searched anew
 
 
 class Places:
@@ -326,6 +331,10 @@ class Localizer:
             angular_step=self.p.global_step,
         )
         self.places = Places(session, self.p, self.mp)
+        if not len(self.places):
+            raise SessionError(
+                "the session holds no keyframe with a laser scan: no map to localize on"
+            )
         self.map_check = MapCheck(session)
         self.progress = progress
         self.reorder = ReorderBuffer(REORDER_WINDOW)
@@ -345,6 +354,7 @@ class Localizer:
         self._odom_prev: NDArray[np.float64] | None = None
         self._moved = np.zeros(3)  # since the last matched scan (odometry, robot frame)
         self._since_search = np.zeros(3)
+        self._search_travel = 0.0  # m of path since the last global search
         self._search_now = True
         self._anchor = -1  # the scan index of the last matched scan
         self._rel = np.zeros(3)  # odometry since it
@@ -419,6 +429,7 @@ class Localizer:
         self._moved = compose_poses(self._moved, step)
         self._rel = compose_poses(self._rel, step)
         self._since_search = compose_poses(self._since_search, step)
+        self._search_travel += math.hypot(step[0], step[1])
         for h in self._hyps:
             h.pose = compose_poses(h.pose, step)
         if self._lost_pose is not None:
@@ -597,6 +608,7 @@ class Localizer:
         if self._lost_pose is not None and self._lost_travel < self.p.search_after:
             return False  # the search near the dead-reckoned pose alone, for now
         self._since_search = np.zeros(3)
+        self._search_travel = 0.0
         self._search_now = False
         hyps = self._global(points)
         if len(hyps) > 1 and hyps[0].score - hyps[1].score < self.p.confirm_margin:
@@ -699,12 +711,14 @@ class Localizer:
         alive = [h for h in self._hyps if h.fails < self.p.lost_after]
         alive.sort(key=lambda h: -h.recent(c))
         self._hyps = alive
-        if not alive:
+        if not alive or self._search_travel > EXPIRE_TRAVEL * self.p.spacing:
+            self._hyps = []  # all dead, or none stood out for long: search again
             self._search_now = True
             return False
         best = alive[0]
         clear = len(alive) == 1 or best.recent(c) - alive[1].recent(c) >= self.p.confirm_margin
-        if best.passes >= c and clear:
+        far = self._search_travel >= CONFIRM_TRAVEL * self.p.spacing
+        if best.passes >= c and clear and (far or len(alive) == 1):
             self._hyps = []
             self._track = _Track(best.pose.copy(), passes=best.passes)
             self._localized(t, best, "global search", alive, n_found)

@@ -34,6 +34,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from fgslam import __version__
+from fgslam.config import ConfigError, from_dict
 from fgslam.errors import UserError
 from fgslam.session.grid import OccupancyGrid, occupancy_grid, write_map
 
@@ -75,8 +76,6 @@ class Session:
 
     def robot_config(self):
         """The configuration the session was run with (:class:`~fgslam.config.RobotConfig`)."""
-        from fgslam.config import from_dict
-
         return from_dict(self.config, "<saved session>")
 
     @classmethod
@@ -253,12 +252,18 @@ def load_session(folder: str | Path) -> Session:
         return _session(index, arrays)
     except SessionError:
         raise
-    except (ValueError, KeyError, TypeError, OSError, EOFError) as e:
+    except (ValueError, KeyError, TypeError, OSError, EOFError, OverflowError) as e:
         raise SessionError(f"{folder}: corrupt session ({type(e).__name__}: {e})") from None
 
 
 def _session(index: dict[str, Any], z: dict[str, NDArray]) -> Session:
-    n = int(index["keyframes"])
+    n = index["keyframes"]
+    if not isinstance(n, int) or isinstance(n, bool) or n < 0:
+        raise ValueError(f"{INDEX}: keyframes = {n!r}")
+    kinds = {"offsets": "iu", "has_scan": "b"}
+    for name in ("times", "poses", "covs", "points", "offsets", "has_scan", "laser_xy"):
+        if z[name].dtype.kind not in kinds.get(name, "fiu"):
+            raise ValueError(f"{SCANS}: {name} holds {z[name].dtype} values")
     offsets = z["offsets"].astype(np.int64)
     points = z["points"].astype(float).reshape(-1, 2)
     has = z["has_scan"].astype(bool)
@@ -271,6 +276,10 @@ def _session(index: dict[str, Any], z: dict[str, NDArray]) -> Session:
     for key in ("config", "landmarks", "constraints", "meta"):
         if not isinstance(index.get(key), dict if key in ("config", "meta") else list):
             raise ValueError(f"{INDEX}: {key} missing or of the wrong type")
+    try:
+        from_dict(index["config"], "<saved session>")
+    except ConfigError as e:
+        raise ValueError(f"its configuration: {e}") from None
     return Session(
         times=z["times"],
         poses=z["poses"],
