@@ -545,9 +545,9 @@ class LocalizeParams:
     them; it is localized when the best of them has passed ``confirm`` matches in a row and
     every other has failed or its mean score is ``confirm_margin`` lower."""
 
-    spacing: float = param(2.0, "m", "between the places the map is cut into")
-    radius: float = param(3.0, "m", "a place's map keyframes lie within this")
-    max_scans: int = param(12, "count", "map keyframes per place, nearest per heading")
+    spacing: float = param(2.0, "m", "between the places the global search starts from")
+    radius: float = param(3.0, "m", "a local map's keyframes lie within this of its position")
+    max_scans: int = param(12, "count", "map keyframes per local map, nearest per heading")
     every_distance: float = param(0.1, "m", "travel before the next scan is matched")
     every_angle: float = param(math.radians(3.0), "rad", "turn before the next scan is matched")
     window: int = param(10, "count", "matched poses smoothed together with the odometry")
@@ -559,7 +559,7 @@ class LocalizeParams:
     confirm: int = param(5, "count", "matches in a row confirming a global answer")
     confirm_margin: float = param(0.1, "1", "... whose mean score beats every other's by this")
     global_step: float = param(math.radians(2.0), "rad", "heading step of the global search")
-    cache_size: int = param(64, "count", "places' references kept")
+    cache_size: int = param(64, "count", "local maps kept, prepared for matching")
 
     def __post_init__(self) -> None:
         for name in ("spacing", "radius", "every_distance", "global_step"):

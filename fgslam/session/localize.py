@@ -38,8 +38,10 @@ window of +-``spacing`` and every heading (steps of ``global_step``). The answer
 ``min_view`` of their returns where the map saw something, at most ``max_see_through`` on
 cells it saw free), best score first, at most ``hypotheses`` of them at least 0.5 m or
 10 deg apart, are the candidates. When the best does not score ``confirm_margin`` above the
-next, none stands out (a corridor's doors, a symmetric room seen from its middle: the truth
-may not even be among them) and the search is made again further on. Otherwise the answers
+next, or above an answer rejected as ambiguous only (the scan also fits a featureless
+stretch, where the matcher cannot pin the pose down), none stands out (a corridor's doors, a
+symmetric room seen from its middle: the truth may not even be among them) and the search is
+made again further on. Otherwise the answers
 are tracked like the pose; one dies after ``lost_after`` failed matches in a row. Localized:
 the one whose last ``confirm`` matches score best on average has passed ``confirm`` matches
 in a row, and no other is left, or every other's average is ``confirm_margin`` lower and the
@@ -361,6 +363,7 @@ class Localizer:
         self._placed: list[tuple[int, NDArray[np.float64]]] = []  # per scan (anchor, rel)
         self._track: _Track | None = None
         self._hyps: list[_Track] = []
+        self._rival = 0.0
         self._lost_pose: NDArray[np.float64] | None = None  # dead reckoning since lost
         self._lost_travel = 0.0  # m since lost
         self._next_recover = 0.0  # m of travel since lost at which to search near it next
@@ -611,7 +614,8 @@ class Localizer:
         self._search_travel = 0.0
         self._search_now = False
         hyps = self._global(points)
-        if len(hyps) > 1 and hyps[0].score - hyps[1].score < self.p.confirm_margin:
+        rivals = [h.score for h in hyps[1:2]] + [self._rival]
+        if hyps and hyps[0].score - max(rivals) < self.p.confirm_margin:
             # no answer stands out (a corridor's doors, a symmetric room seen from its
             # middle): the truth may not even be among them; search again further on
             self.stats["global_ambiguous"] = self.stats.get("global_ambiguous", 0) + 1
@@ -669,11 +673,16 @@ class Localizer:
         self.stats["global_searches"] += 1
         wide = self.mp_global
         found: list[Match] = []
+        self._rival = 0.0  # the best answer too ambiguous to take (a featureless stretch)
         for a in range(len(self.places)):
             x, y = self.places.xy[a]
             m = match(self.places.reference((x, y)), points, (x, y, 0.0), wide)
-            if m.ok and not self._contradicted(m.pose, points):
-                found.append(m)
+            vague = not m.ok and m.reason.startswith("ambiguous")
+            if (m.ok or vague) and not self._contradicted(m.pose, points):
+                if m.ok:
+                    found.append(m)
+                else:
+                    self._rival = max(self._rival, m.score)
         found.sort(key=lambda m: -m.score)
         hyps: list[_Track] = []
         for m in found:
