@@ -26,11 +26,9 @@ contradicts (more than ``max_see_through`` of the returns on cells the map saw f
 robot is lost. Lost, a scan every ``RECOVER_EVERY`` of travel is searched for around the
 pose the odometry carried on (a window growing with the travel since, up to ``spacing``:
 the robot came back into the mapped part), and once it has travelled ``search_after`` also
-by the global search (while the odometry says it is off the map, only after
-``OFF_MAP_TRAVEL`` times that). When the map contradicted most of the failures strongly (more than
-``KIDNAP_SEE_THROUGH`` times ``max_see_through`` of the returns on free cells, at the match
-or, where the match failed, at the prediction), the robot was carried away (kidnapped): the
-global search alone, at once. The tracking thresholds are the scan odometry's; a weak score or
+by the global search. When the map contradicted most of the failures (at the match, or at
+the prediction where the match failed), the robot was carried away (kidnapped): the global
+search alone, at once. The tracking thresholds are the scan odometry's; a weak score or
 overlap is no sign of being lost: where the robot sees much the map did not, they are low at
 the right pose.
 
@@ -51,8 +49,8 @@ robot has travelled ``CONFIRM_TRAVEL`` spacings since the search (a room symmetr
 half turn fits both ways until something that breaks the symmetry comes into view; a
 corridor's doors make a lead that does not last). All dead, or none decided after
 ``EXPIRE_TRAVEL`` spacings: a new search at once; a search that found nothing: again once
-the robot moved ``spacing`` / 2 or turned 30 deg (both doubling each time it finds nothing,
-up to ``RETRY_MAX`` spacings).
+the robot moved ``spacing`` / 2 (doubling each time, up to ``RETRY_MAX`` spacings) or turned
+30 deg.
 
 Frames: world = the saved session's; scan points in the robot frame; (x, y, theta) m, rad."""
 
@@ -94,12 +92,6 @@ RECOVER_XY, RECOVER_THETA, RECOVER_GROWTH = 0.5, 0.25, 0.2  # m, rad, per metre 
 RECOVER_EVERY = 0.3  # m of travel between the searches near the dead-reckoned pose
 RETRY_XY, RETRY_THETA = 0.5, math.radians(30.0)  # of spacing (x), absolute (theta)
 RETRY_MAX = 8.0  # spacings
-# a failed match whose returns fall on free cells this many times more than a wrong answer's
-# (max_see_through) says the robot was carried away; fewer, that the place changed (doors,
-# people: Freiburg 079 showed 17-33 % at right poses, a kidnapped robot 66 %)
-KIDNAP_SEE_THROUGH = 2.0
-# lost and, by the odometry, off the map: no global search before this many search_after
-OFF_MAP_TRAVEL = 4.0
 CONFIRM_TRAVEL = 1.0  # spacings of travel before one of several answers is taken
 EXPIRE_TRAVEL = 10.0  # spacings of travel after which undecided answers are searched anew
 
@@ -521,7 +513,7 @@ class Localizer:
         through = self.map_check.check(m.pose if m.ok else tr.pose, points)[1]
         good = m.ok and through <= self.p.max_see_through
         tr.fails = 0 if good else tr.fails + 1
-        seen_through = through > KIDNAP_SEE_THROUGH * self.p.max_see_through
+        seen_through = through > self.p.max_see_through
         tr.contradicted = 0 if good else tr.contradicted + seen_through
         if tr.fails >= self.p.lost_after:
             why = m.reason or f"{100 * through:.0f} % of the returns on free map cells"
@@ -613,17 +605,10 @@ class Localizer:
             return self._confirm_step(t, points)
         moved = math.hypot(self._since_search[0], self._since_search[1])
         if not self._search_now and (
-            moved < self._retry * self.p.spacing
-            and abs(self._since_search[2]) < RETRY_THETA * self._retry / RETRY_XY
+            moved < self._retry * self.p.spacing and abs(self._since_search[2]) < RETRY_THETA
         ):
             return False
-        if self._lost_pose is not None and (
-            self._lost_travel < self.p.search_after
-            or (
-                self._lost_travel < OFF_MAP_TRAVEL * self.p.search_after
-                and self.map_check.check(self._lost_pose, points)[0] < self.p.min_view
-            )
-        ):
+        if self._lost_pose is not None and self._lost_travel < self.p.search_after:
             return False  # the search near the dead-reckoned pose alone, for now
         self._since_search = np.zeros(3)
         self._search_travel = 0.0
