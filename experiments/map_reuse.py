@@ -27,8 +27,10 @@ from pathlib import Path
 
 import numpy as np
 
+from factors.geometry import wrap_angles
 from fgslam.config import load_config, with_options
 from fgslam.evaluation import dense
+from fgslam.evaluation.metrics import interpolate_poses
 from fgslam.events import LaserScan, TruthPose
 from fgslam.io.formats import open_log
 from fgslam.io.readers.carmen import odometry_chain
@@ -49,11 +51,9 @@ def _errors(res, truth: np.ndarray, after: float = -math.inf) -> tuple[float, fl
     if not ok.any():
         return math.inf, math.inf
     t, p = res.times[ok], res.poses[ok]
-    x = np.interp(t, truth[:, 0], truth[:, 1])
-    y = np.interp(t, truth[:, 0], truth[:, 2])
-    th = np.interp(t, truth[:, 0], np.unwrap(truth[:, 3]))
-    dth = np.degrees(np.abs(np.angle(np.exp(1j * (p[:, 2] - th)))))
-    return float(np.hypot(p[:, 0] - x, p[:, 1] - y).max()), float(dth.max())
+    at = interpolate_poses(truth[:, 0], truth[:, 1:], t)
+    dth = np.degrees(np.abs(wrap_angles(p[:, 2] - at[:, 2])))
+    return float(np.hypot(p[:, 0] - at[:, 0], p[:, 1] - at[:, 1]).max()), float(dth.max())
 
 
 def _localize(session, cfg, events, initial=None):

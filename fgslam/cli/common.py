@@ -51,6 +51,25 @@ def progress_bar(desc: str, unit: str = "s"):
     return update
 
 
+def log_progress(reader, desc: str):
+    """A progress callback for a run over ``reader``'s log: called with each event's time, it
+    moves a :func:`progress_bar` by the log time since the first event, out of the log's
+    duration (no bar when the reader does not know it); ``.close()`` it at the end."""
+    d = reader.meta.get("duration")
+    total = float(d) if isinstance(d, int | float) else None
+    bar = progress_bar(desc)
+    first: list[float] = []
+
+    def progress(t: float) -> None:
+        if not first:
+            first.append(t)
+        if total:
+            bar(min(t - first[0], total), total)
+
+    progress.close = bar.close  # type: ignore[attr-defined]
+    return progress
+
+
 def add_reader_arguments(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("foreign logs (docs/readers.md)")
     g.add_argument(

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import math
 
-from fgslam.cli.common import add_log_arguments, progress_bar, reader_options
+from fgslam.cli.common import add_log_arguments, log_progress, reader_options
 from fgslam.errors import UserError
 
 
@@ -63,24 +63,14 @@ def run(args: argparse.Namespace) -> int:
         check_against_log(saved, reader.config, str(args.log))
     except UserError as e:
         raise UserError(f"the map {args.map} was made by another robot: {e}") from None
-    d = reader.meta.get("duration")
-    total = float(d) if isinstance(d, int | float) else None
-    bar = progress_bar("localize")
-    first: list[float] = []
-
-    def progress(t: float) -> None:
-        if not first:
-            first.append(t)
-        if total:
-            bar(min(t - first[0], total), total)
-
+    progress = log_progress(reader, "localize")
     loc = Localizer(session, cfg, args.initial_pose, progress=progress)
     try:
         for ev in reader:
             loc.add(ev)
         res = loc.finish()
     finally:
-        bar.close()
+        progress.close()
     rep = write_localization(session, res, args.out, {"map": str(args.map), "log": str(args.log)})
     print(summary(rep))
     print(f"wrote {args.out}/trajectory.tum, report.json, map.png")

@@ -13,8 +13,8 @@ from fgslam.cli.common import (
     add_backend_arguments,
     add_log_arguments,
     config_options,
+    log_progress,
     print_summary,
-    progress_bar,
     reader_options,
     reader_warnings,
 )
@@ -62,22 +62,12 @@ def run(args: argparse.Namespace) -> int:
         check_replaceable(args.save)
     reader = open_log(args.log, **reader_options(args))
     cfg = with_options(_run_config(reader, args.config, args.log), config_options(args))
-    d = reader.meta.get("duration")
-    total = float(d) if isinstance(d, int | float) else None
-    bar = progress_bar(f"{args.backend}/{args.sensors}")
-    t_first: list[float] = []
-
-    def progress(t: float) -> None:
-        if not t_first:
-            t_first.append(t)
-        if total:
-            bar(min(t - t_first[0], total), total)
-
+    progress = log_progress(reader, f"{args.backend}/{args.sensors}")
     tap = _Tap(reader)
     try:
         res = run_slam(tap, cfg, args.backend, args.sensors, progress, association=args.association)
     finally:
-        bar.close()
+        progress.close()
     extra, notes = _input_notes(reader, tap, [res])
     extra["config_source"] = cfg.source
     from fgslam.evaluation.dense import write_dense_trajectory

@@ -104,6 +104,10 @@ class OdometryConfig:
     def metres_per_tick_left(self) -> float:
         return 2.0 * math.pi * self.wheel_radius_left / self.encoder_steps_per_rev
 
+    def wheel_travel(self, ticks_right: float, ticks_left: float) -> tuple[float, float]:
+        """The right and left wheels' travel (m) of an odometry sample's encoder ticks."""
+        return ticks_right * self.metres_per_tick_right, ticks_left * self.metres_per_tick_left
+
 
 @dataclass(frozen=True)
 class LaserConfig:

@@ -46,13 +46,7 @@ def _samples_and_reference(log: str, reference: str, options: dict[str, Any]):
     samples = []
     for ev in reader:
         if isinstance(ev, OdometryEvent):
-            samples.append(
-                (
-                    ev.t,
-                    ev.ticks_right * o.metres_per_tick_right,
-                    ev.ticks_left * o.metres_per_tick_left,
-                )
-            )
+            samples.append((ev.t, *o.wheel_travel(ev.ticks_right, ev.ticks_left)))
     return reader.config, np.array(samples, dtype=float).reshape(-1, 3)
 
 

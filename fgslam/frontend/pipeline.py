@@ -111,12 +111,7 @@ class FrontEnd:
         """Consume one event; returns the scans whose window is now complete."""
         self.now = max(self.now, ev.t)
         if isinstance(ev, OdometryEvent):
-            o = self.cfg.odometry
-            self.odo.add(
-                ev.t,
-                ev.ticks_right * o.metres_per_tick_right,
-                ev.ticks_left * o.metres_per_tick_left,
-            )
+            self.odo.add(ev.t, *self.cfg.odometry.wheel_travel(ev.ticks_right, ev.ticks_left))
             self.poses.add(ev.t, self.odo.pose)
         elif isinstance(ev, LaserScan):
             self._saw_laser = True

@@ -76,6 +76,7 @@ from factors.geometry import (
 )
 from factors.odometry import preintegrate
 from fgslam.config import LocalizeParams, MatchParams, RobotConfig
+from fgslam.evaluation.metrics import interpolate_poses
 from fgslam.events import Event, OdometryEvent, TruthPose
 from fgslam.frontend.pipeline import FrontEnd
 from fgslam.io.ordering import REORDER_WINDOW, ReorderBuffer
@@ -275,11 +276,9 @@ class LocalizationResult:
         if not inside.any():
             return None
         t, p = t[inside], self.poses[ok][inside]
-        tx = np.interp(t, self.truth_t, self.truth[:, 0])
-        ty = np.interp(t, self.truth_t, self.truth[:, 1])
-        th = np.interp(t, self.truth_t, np.unwrap(self.truth[:, 2]))
-        dxy = np.hypot(p[:, 0] - tx, p[:, 1] - ty)
-        dth = np.degrees(np.abs(wrap_angles(p[:, 2] - th)))
+        truth = interpolate_poses(self.truth_t, self.truth, t)
+        dxy = np.hypot(p[:, 0] - truth[:, 0], p[:, 1] - truth[:, 1])
+        dth = np.degrees(np.abs(wrap_angles(p[:, 2] - truth[:, 2])))
         return {
             "scans": len(t),
             "position_rmse_m": round(float(np.sqrt(np.mean(dxy**2))), 4),
@@ -407,13 +406,8 @@ class Localizer:
             self.truth.append((ev.x, ev.y, ev.theta))
             return
         if isinstance(ev, OdometryEvent):
-            o = self.cfg.odometry
             self._samples.append(
-                (
-                    ev.t,
-                    ev.ticks_right * o.metres_per_tick_right,
-                    ev.ticks_left * o.metres_per_tick_left,
-                )
+                (ev.t, *self.cfg.odometry.wheel_travel(ev.ticks_right, ev.ticks_left))
             )
         self.frontend.add(ev)
         if self.progress is not None:

@@ -322,12 +322,7 @@ class SlamPipeline:
             self.truth.append((ev.x, ev.y, ev.theta))
             return 0
         if isinstance(ev, OdometryEvent):
-            o = self.cfg.odometry
-            sample = (
-                ev.t,
-                ev.ticks_right * o.metres_per_tick_right,
-                ev.ticks_left * o.metres_per_tick_left,
-            )
+            sample = (ev.t, *self.cfg.odometry.wheel_travel(ev.ticks_right, ev.ticks_left))
             self._samples.append(sample)
             self._all_samples.append(sample)
         t0 = time.perf_counter()
