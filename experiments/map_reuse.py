@@ -8,10 +8,12 @@ Success: localized, and every localized pose within 0.2 m and 3 deg of the truth
 relocalization, for the kidnapping).
 
 Part ``freiburg``: Freiburg 079 (the corrected CARMEN log) cut in two halves at the median
-scan time; the first half mapped (laser iSAM2, the scan-matching defaults) and saved, the
-second localized on it without an initial pose; its relations error (the relations with both
-ends in the second half) beside one run over the whole log scored on the same relations,
-and the localization's speed.
+scan time; the first half mapped (laser iSAM2, the scan-matching defaults) and saved; the
+second localized on it without an initial pose (its relations error on the relations with
+both ends in the second half), and the second continuing it (``--continue``: the joined
+map's error on all relations); beside one run over the whole log scored on the same
+relations; and the speeds (the continued run's real-time factor: the second half's
+duration over the anchor search and the run).
 
     python experiments/map_reuse.py [--part corridor|freiburg|all] [--seeds 10]
 """
@@ -35,6 +37,7 @@ from fgslam.events import LaserScan, TruthPose
 from fgslam.io.formats import open_log
 from fgslam.io.readers.carmen import odometry_chain
 from fgslam.session import Session, load_session, save_session
+from fgslam.session.join import Continuation, find_anchor
 from fgslam.session.localize import Localizer
 from fgslam.sim import simulate_to_log
 from fgslam.sim.world import load_world
@@ -131,43 +134,58 @@ def freiburg() -> None:
 
     def score(t, poses, relations):
         est, has = dense.estimate_at_scans(chain, t, poses)
-        return dense.relations_error_chain(relations, chain, est, has)
-
-    def fmt(m):
-        return (
-            f"{m['trans_mean']:.3f} / {m['rot_mean_deg']:.2f} | {m['relations_used']} of "
-            f"{len(half2)}"
-        )
+        m = dense.relations_error_chain(relations, chain, est, has)
+        return f"{m['trans_mean']:.4f} / {m['rot_mean_deg']:.3f} ({m['relations_used']})"
 
     t0 = time.perf_counter()
     whole = run_backends(events, cfg, ["isam2"], "laser")[0]
     w_wall = time.perf_counter() - t0
     first = run_backends([e for e in events if e.t < split], cfg, ["isam2"], "laser")[0]
+    second = [e for e in events if e.t >= split]
     with tempfile.TemporaryDirectory() as tmp:
         save_session(Session.from_result(first, cfg), Path(tmp) / "s")
         session = load_session(Path(tmp) / "s")
-    second = [e for e in events if e.t >= split]
     res, wall = _localize(session, cfg, second)
     rep = res.report()
-    print(f"Freiburg 079 cut at t = {split:.1f} s ({len(scans)} scans, {len(half2)} relations")
-    print("in the second half)\n")
-    print("| run | second half's relations: m / deg | used | wall (s) | real time |")
+    t0 = time.perf_counter()
+    anchor = find_anchor(session, second, cfg)
+    cont = Continuation(session, anchor, "first half")
+    joined = run_backends(second, cfg, ["isam2"], "laser", continuation=cont)[0]
+    c_wall = time.perf_counter() - t0
+    half_s = second[-1].t - second[0].t
+    print(f"Freiburg 079 cut at t = {split:.1f} s ({len(scans)} scans; {len(rel)} relations,")
+    print(f"{len(half2)} of them in the second half)\n")
+    print("| run | all relations: m / deg (used) | second half's | wall (s) | real time |")
     print("|---|---|---|---|---|")
     print(
-        f"| one run over the whole log (iSAM2) | {fmt(score(*whole.every_scan, half2))} | "
-        f"{w_wall:.0f} | {whole.log_duration / w_wall:.0f}x |"
+        f"| one run over the whole log (iSAM2) | {score(*whole.every_scan, rel)} | "
+        f"{score(*whole.every_scan, half2)} | {w_wall:.0f} | {whole.log_duration / w_wall:.0f}x |"
     )
     ok = np.isfinite(res.poses).all(axis=1)
     print(
-        f"| first half mapped, second localized | {fmt(score(res.times[ok], res.poses[ok], half2))}"
-        f" | {wall:.0f} | {res.log_duration / wall:.0f}x |"
+        f"| first half mapped, second localized on it | - | "
+        f"{score(res.times[ok], res.poses[ok], half2)} | {wall:.0f} | "
+        f"{res.log_duration / wall:.0f}x |"
+    )
+    print(
+        f"| first half mapped, second continues it (--continue) | "
+        f"{score(*joined.every_scan, rel)} | {score(*joined.every_scan, half2)} | "
+        f"{c_wall:.0f} | {half_s / c_wall:.0f}x |"
     )
     loc = rep["first_localization"] or {}
     print(
-        f"\nlocalized at t = {rep['localized_at']} s ({loc.get('how')}, "
+        f"\nlocalization: localized at t = {rep['localized_at']} s ({loc.get('how')}, "
         f"{loc.get('answers_found')} answers); lost {len(rep['lost'])} times; "
         f"{rep['scans_localized']} of {rep['scans']} scans localized, "
         f"{rep['scans_matched']} matched"
+    )
+    n0 = cont.keyframes
+    acc = [c for c in joined.loop_closures if c["accepted"]]
+    print(
+        f"continued: anchored {anchor.t - anchor.log_start:.1f} s into the second half "
+        f"({anchor.how}); {n0} saved + {len(joined.times) - n0} new keyframes; "
+        f"{sum(c['from'] < n0 for c in acc)} of its {len(acc)} loop closures to saved "
+        "keyframes"
     )
 
 

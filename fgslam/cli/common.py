@@ -4,6 +4,7 @@ scan matching, the progress bar and the summary of a run."""
 from __future__ import annotations
 
 import argparse
+import math
 
 from fgslam.choices import (
     CALIBRATION_CHOICES,
@@ -309,3 +310,14 @@ def print_summary(rep: dict, out: str) -> None:
     failed = {e["output"] for e in rep.get("output_errors", [])}
     names = ["trajectory.tum", "map.json", "report.json", "map.png"]
     print(f"wrote {out}/{', '.join(n for n in names if n not in failed)}")
+
+
+def parse_pose(text: str) -> tuple[float, float, float]:
+    """An argparse type: ``X,Y,THETA`` (m, m, rad), finite."""
+    try:
+        x, y, th = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected X,Y,THETA (m, m, rad), got {text!r}") from None
+    if not all(math.isfinite(v) for v in (x, y, th)):
+        raise argparse.ArgumentTypeError(f"not finite: {text!r}")
+    return x, y, th

@@ -3,9 +3,8 @@
 from __future__ import annotations
 
 import argparse
-import math
 
-from fgslam.cli.common import add_log_arguments, log_progress, reader_options
+from fgslam.cli.common import add_log_arguments, log_progress, parse_pose, reader_options
 from fgslam.errors import UserError
 
 
@@ -31,20 +30,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--initial-pose",
         metavar="X,Y,THETA",
-        type=_pose,
+        type=parse_pose,
         help="the start pose in the map's frame (m, m, rad); default: search the whole map",
     )
     p.set_defaults(func=run)
-
-
-def _pose(text: str) -> tuple[float, float, float]:
-    try:
-        x, y, th = (float(v) for v in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected X,Y,THETA (m, m, rad), got {text!r}") from None
-    if not all(math.isfinite(v) for v in (x, y, th)):
-        raise argparse.ArgumentTypeError(f"not finite: {text!r}")
-    return x, y, th
 
 
 def run(args: argparse.Namespace) -> int:

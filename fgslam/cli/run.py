@@ -4,6 +4,7 @@ of what happened to the log's records."""
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from collections import Counter
 from pathlib import Path
@@ -14,10 +15,12 @@ from fgslam.cli.common import (
     add_log_arguments,
     config_options,
     log_progress,
+    parse_pose,
     print_summary,
     reader_options,
     reader_warnings,
 )
+from fgslam.errors import UserError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -45,6 +48,23 @@ def register(sub: argparse._SubParsersAction) -> None:
         "the keyframes' scans, the configuration, map.pgm + map.yaml) for `fgslam localize "
         "--map`; an existing session there is replaced, any other folder content refused",
     )
+    p.add_argument(
+        "--continue",
+        dest="continue_from",
+        metavar="SESSION",
+        help="continue a saved session: localize the log on it (from --initial-pose, else by "
+        "a search over the whole map), then map on from there, the saved keyframes and the "
+        "new ones in one graph (loop closures between them join the two); saved as one "
+        "session into --save, by default back into SESSION (replaced only once the run is "
+        "done). isam2 or batch only. The log before the robot is placed on the map is not "
+        "mapped (docs/sessions.md)",
+    )
+    p.add_argument(
+        "--initial-pose",
+        metavar="X,Y,THETA",
+        type=parse_pose,
+        help="with --continue: the log's start pose in the session's frame (m, m, rad)",
+    )
     p.set_defaults(func=run)
 
 
@@ -54,6 +74,12 @@ def run(args: argparse.Namespace) -> int:
     from fgslam.slam.outputs import write_outputs
     from fgslam.slam.runner import run_slam
 
+    if args.initial_pose is not None and not args.continue_from:
+        raise UserError("--initial-pose places the log on a saved session: give --continue")
+    if args.continue_from:
+        if args.backend == "ekf":
+            raise UserError("--continue needs isam2 or batch: the EKF keeps no past keyframes")
+        args.save = args.save or args.continue_from
     if args.save:  # refused before the work, not after
         from fgslam.session.store import SessionError, check_replaceable
 
@@ -62,10 +88,19 @@ def run(args: argparse.Namespace) -> int:
         check_replaceable(args.save)
     reader = open_log(args.log, **reader_options(args))
     cfg = with_options(_run_config(reader, args.config, args.log), config_options(args))
+    continuation = _continuation(args, cfg) if args.continue_from else None
     progress = log_progress(reader, f"{args.backend}/{args.sensors}")
     tap = _Tap(reader)
     try:
-        res = run_slam(tap, cfg, args.backend, args.sensors, progress, association=args.association)
+        res = run_slam(
+            tap,
+            cfg,
+            args.backend,
+            args.sensors,
+            progress,
+            association=args.association,
+            continuation=continuation,
+        )
     finally:
         progress.close()
     extra, notes = _input_notes(reader, tap, [res])
@@ -94,9 +129,38 @@ def run(args: argparse.Namespace) -> int:
         from fgslam.session import Session, save_session
 
         meta = {"log": Path(args.log).name, "log_duration_s": res.log_duration}
-        save_session(Session.from_result(res, cfg, meta), args.save)
+        save_session(Session.from_result(res, cfg, meta, continuation), args.save)
         print(f"saved the session in {args.save} (session.json, scans.npz, map.pgm, map.yaml)")
     return _report_partial(rep, args.out)
+
+
+def _continuation(args: argparse.Namespace, cfg):
+    """The saved session to continue and where the log starts on it (a first pass over the
+    log, as far as its first match on the map)."""
+    from fgslam.config import check_against_log
+    from fgslam.io.formats import open_log
+    from fgslam.session import load_session
+    from fgslam.session.join import Continuation, find_anchor
+
+    session = load_session(args.continue_from)
+    try:
+        check_against_log(session.robot_config(), cfg, str(args.log))
+    except UserError as e:
+        msg = f"the session {args.continue_from} was made by another robot: {e}"
+        raise UserError(msg) from None
+    reader = open_log(args.log, **reader_options(args))
+    progress = log_progress(reader, "localize on the session")
+    try:
+        anchor = find_anchor(session, reader, cfg, args.initial_pose, progress)
+    finally:
+        progress.close()
+    x, y, th = anchor.pose
+    print(
+        f"placed on {args.continue_from} at t = {anchor.t:.2f} s ({anchor.how}; "
+        f"{anchor.t - anchor.log_start:.1f} s into the log): x {x:.2f} y {y:.2f} "
+        f"th {math.degrees(th):.1f} deg; mapping from there"
+    )
+    return Continuation(session, anchor, str(args.continue_from))
 
 
 class _Tap:

@@ -372,6 +372,9 @@ class Localizer:
         self._carry: tuple[int, NDArray[np.float64], NDArray[np.float64]] | None = None
         self._last_t_matched: float | None = None  # the last scan matched (or tried)
         self._last_t_window: float | None = None  # the window's newest pose's time
+        # the first tracked match: (scan time s, pose world, covariance body frame) (a
+        # continued run's anchor on the map, :mod:`fgslam.session.join`)
+        self.first_fix: tuple[float, NDArray[np.float64], NDArray[np.float64]] | None = None
         if initial_pose is not None:
             self._track = _Track(np.asarray(initial_pose, dtype=float).reshape(3))
             self._pending_initial = True
@@ -528,6 +531,8 @@ class Localizer:
         pre = self._odometry_to(t)
         self._last_t_window = t
         self._window.append((len(self.times), t, np.asarray(m.pose, float), m.cov, pre))
+        if self.first_fix is None:
+            self.first_fix = (t, np.asarray(m.pose, float).copy(), np.asarray(m.cov, float))
         tr.pose = self._smooth()
         return True
 

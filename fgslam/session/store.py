@@ -6,12 +6,16 @@ The folder holds:
 - ``session.json``: the format name and version, the fgslam version that wrote it, what was
   run (log, backend, sensors), the robot configuration (its keys), the calibration
   estimate, the landmarks (kind, mean, covariance; world frame), the constraints between
-  keyframes (consecutive scan matches and accepted loop closures: the relative pose of the
-  second keyframe in the first's frame and its covariance, GTSAM's between convention) and
+  keyframes (``scan``: consecutive scan matches, ``odometry``: consecutive wheel odometry
+  where no scan matched, ``loop``: accepted loop closures, ``anchor``: a continued log's
+  first keyframe placed on the saved ones; each the relative pose of the second keyframe in
+  the first's frame and its covariance, GTSAM's between convention) and
   the SHA-256 of ``scans.npz``;
 - ``scans.npz``: the keyframes' times (s), poses ((N, 3) world, m, rad), pose covariances
   ((N, 3, 3), NaN where none), their laser points concatenated ((M, 2) robot frame, m) with
-  each keyframe's offset ((N + 1,)), and the laser's position on the robot (m);
+  each keyframe's offset ((N + 1,)), the laser's position on the robot (m), and the scans
+  between keyframes (``between``, (M, 5): time s, the keyframe k before it, its pose in k's
+  frame; a continued run places them again on the re-estimated keyframes);
 - ``map.pgm`` and ``map.yaml``: the occupancy grid (:mod:`fgslam.session.grid`).
 
 Saving never leaves a half-written session: the files are written into a new folder that
@@ -33,6 +37,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from factors.geometry import between_poses
 from fgslam import __version__
 from fgslam.config import ConfigError, from_dict
 from fgslam.errors import UserError
@@ -61,6 +66,7 @@ class Session:
     constraints: list[dict[str, Any]] = field(default_factory=list)
     calibration: dict[str, Any] | None = None
     meta: dict[str, Any] = field(default_factory=dict)
+    between: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 5)))
 
     def __post_init__(self) -> None:
         self.times = np.asarray(self.times, dtype=float).reshape(-1)
@@ -69,6 +75,7 @@ class Session:
         self.covs = np.asarray(self.covs, dtype=float).reshape(n, 3, 3)
         if len(self.scans) != n:
             raise ValueError(f"{len(self.scans)} scans for {n} keyframes")
+        self.between = np.asarray(self.between, dtype=float).reshape(-1, 5)
 
     @property
     def keyframes(self) -> int:
@@ -79,21 +86,28 @@ class Session:
         return from_dict(self.config, "<saved session>")
 
     @classmethod
-    def from_result(cls, res, cfg, meta: dict[str, Any] | None = None) -> Session:
-        """A finished run's :class:`~fgslam.slam.runner.SlamResult` with its configuration."""
+    def from_result(
+        cls, res, cfg, meta: dict[str, Any] | None = None, continuation=None
+    ) -> Session:
+        """A finished run's :class:`~fgslam.slam.runner.SlamResult` with its configuration;
+        a continued run's (``continuation``, :class:`~fgslam.session.join.Continuation`) is
+        the joined session: the saved keyframes and this log's, the saved landmarks and
+        this run's (ids after the saved ones), ``meta["segments"]`` saying which is which."""
         n = len(res.times)
         covs = np.full((n, 3, 3), np.nan)
         for i, c in enumerate(res.covs[:n]):
             if c is not None and np.shape(c) == (3, 3):
                 covs[i] = c
         scans = list(res.keyframe_scans[:n]) + [None] * max(0, n - len(res.keyframe_scans))
-        landmarks = []
+        saved = [] if continuation is None else continuation.session.landmarks
+        landmarks = [dict(m) for m in saved]
+        first_id = 1 + max((int(m["id"]) for m in landmarks), default=-1)
         for lid, mean in sorted(res.means.items()):
             lm = res.landmarks.get(lid)
             cov = res.landmark_covs.get(lid)
             landmarks.append(
                 {
-                    "id": int(lid),
+                    "id": first_id + int(lid),
                     "kind": lm.kind if lm is not None else "unknown",
                     "mean": [float(v) for v in np.ravel(mean)],
                     "cov": None if cov is None else np.asarray(cov, float).tolist(),
@@ -102,14 +116,27 @@ class Session:
         constraints = []
         for i, link in enumerate(getattr(res, "keyframe_links", [])[: max(n - 1, 0)]):
             if link is not None:
-                rel, cov = link
-                constraints.append(_constraint("scan", i, i + 1, rel, cov))
+                rel, cov, kind = link
+                constraints.append(_constraint(kind, i, i + 1, rel, cov))
         for c in res.loop_closures:
             if c.get("accepted") and c.get("pose") is not None and c.get("cov") is not None:
                 if c["from"] < n and c["to"] < n:
                     constraints.append(_constraint("loop", c["from"], c["to"], c["pose"], c["cov"]))
         m = {"backend": res.backend, "sensors": res.sensors}
         m.update(meta or {})
+        # the scans between keyframes, each in the frame of the keyframe before it
+        kf_t = np.asarray(res.times, dtype=float)
+        is_kf = np.isin(res.scan_times, kf_t)
+        st, sp = res.scan_times[~is_kf], res.scan_poses[~is_kf]
+        k = np.searchsorted(kf_t, st, side="right") - 1
+        keep = k >= 0
+        st, sp, k = st[keep], sp[keep], k[keep]
+        rel = between_poses(np.asarray(res.poses)[k], sp) if len(k) else np.zeros((0, 3))
+        between = np.column_stack([st, k, rel]) if len(k) else np.zeros((0, 5))
+        if continuation is not None:
+            n0 = continuation.keyframes
+            constraints += continuation.constraints(n0)
+            m["segments"] = continuation.segments(str(m.get("log", "")), n - n0)
         return cls(
             times=res.times,
             poses=res.poses,
@@ -121,6 +148,7 @@ class Session:
             constraints=constraints,
             calibration=res.calibration,
             meta=m,
+            between=between,
         )
 
     def grid(self, resolution: float = 0.05) -> OccupancyGrid:
@@ -154,6 +182,7 @@ def _scans_bytes(s: Session) -> bytes:
         offsets=offsets,
         has_scan=has,
         laser_xy=np.asarray(s.laser_xy, dtype=float),
+        between=s.between,
     )
     return buf.getvalue()
 
@@ -256,6 +285,34 @@ def load_session(folder: str | Path) -> Session:
         raise SessionError(f"{folder}: corrupt session ({type(e).__name__}: {e})") from None
 
 
+CONSTRAINT_KINDS = ("scan", "odometry", "loop", "anchor")
+
+
+def _is_int(v: object) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _check_constraint(c: object, n: int) -> None:
+    """A constraint as :class:`Session` holds it, between keyframes of ``n``; else ValueError."""
+    what = f"{INDEX}: constraint {str(c)[:80]}"
+    if not isinstance(c, dict) or c.get("kind") not in CONSTRAINT_KINDS:
+        raise ValueError(f"{what}: not one of the kinds {CONSTRAINT_KINDS}")
+    i, j = c.get("from"), c.get("to")
+    if not (_is_int(i) and _is_int(j) and 0 <= i < n and 0 <= j < n and i != j):
+        raise ValueError(f"{what}: not between two keyframes")
+    try:
+        pose = np.asarray(c.get("pose"), dtype=float)
+        cov = np.asarray(c.get("cov"), dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{what}: pose or covariance not numbers") from None
+    if pose.shape != (3,) or cov.shape != (3, 3):
+        raise ValueError(f"{what}: pose or covariance of the wrong shape")
+    if not (np.isfinite(pose).all() and np.isfinite(cov).all()):
+        raise ValueError(f"{what}: pose or covariance not finite")
+    if np.linalg.eigvalsh(0.5 * (cov + cov.T)).min() <= 0:
+        raise ValueError(f"{what}: covariance not positive definite")
+
+
 def _session(index: dict[str, Any], z: dict[str, NDArray]) -> Session:
     n = index["keyframes"]
     if not isinstance(n, int) or isinstance(n, bool) or n < 0:
@@ -280,6 +337,20 @@ def _session(index: dict[str, Any], z: dict[str, NDArray]) -> Session:
         from_dict(index["config"], "<saved session>")
     except ConfigError as e:
         raise ValueError(f"its configuration: {e}") from None
+    if not (np.isfinite(z["times"]).all() and np.isfinite(z["poses"]).all()):
+        raise ValueError(f"{SCANS}: keyframe times or poses not finite")
+    between = z.get("between", np.zeros((0, 5)))  # (sessions saved before it: none)
+    if between.dtype.kind not in "fiu" or between.ndim != 2 or between.shape[1] != 5:
+        raise ValueError(f"{SCANS}: between holds {between.dtype} values of shape {between.shape}")
+    between = between.astype(float)
+    k = between[:, 1]
+    if not np.isfinite(between).all() or np.any((k < 0) | (k >= n) | (k != np.round(k))):
+        raise ValueError(f"{SCANS}: between holds scans of no keyframe or not finite")
+    for c in index["constraints"]:
+        _check_constraint(c, n)
+    for lm in index["landmarks"]:
+        if not isinstance(lm, dict) or not _is_int(lm.get("id")):
+            raise ValueError(f"{INDEX}: a landmark without an integer id: {str(lm)[:80]}")
     return Session(
         times=z["times"],
         poses=z["poses"],
@@ -291,4 +362,5 @@ def _session(index: dict[str, Any], z: dict[str, NDArray]) -> Session:
         constraints=index["constraints"],
         calibration=index.get("calibration"),
         meta=index["meta"],
+        between=between,
     )

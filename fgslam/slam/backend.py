@@ -119,6 +119,19 @@ class Backend(ABC):
         an earlier one)."""
         raise NotImplementedError(f"{self.name} does not close loops")
 
+    def restore(
+        self,
+        times: NDArray[np.float64],
+        poses: NDArray[np.float64],
+        links: list[Preintegrated],
+        loops: list[tuple[int, int, Preintegrated]],
+        cov: NDArray[np.float64],
+    ) -> None:
+        """Start from saved keyframes (a continued session): keyframe i at ``times[i]`` (s)
+        and ``poses[i]`` (world), ``links[i]`` from keyframe i to i + 1, ``loops`` (j, k,
+        measurement) between any two, a prior of covariance ``cov`` on the first."""
+        raise NotImplementedError(f"{self.name} keeps no past keyframes to continue from")
+
     def finish(self) -> list[tuple[float, NDArray[np.float64], NDArray[np.float64]]]:
         """The final trajectory estimate: (t, pose, covariance) per keyframe."""
         return self.trajectory

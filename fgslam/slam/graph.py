@@ -145,6 +145,7 @@ class GraphBackend(GraphGuard, Backend):
         self._touched: set[int] = set()
         self._loop_added = False
         self._prev = gtsam.Pose2()
+        self._origin = 0  # the keyframe the current one is linked to (predict)
         # iSAM2's pose estimates read since its last update, by (key, update count): the
         # same numbers as asking iSAM2 again (it changes only when updated, in commit)
         self._solves = 0
@@ -170,12 +171,19 @@ class GraphBackend(GraphGuard, Backend):
         self._pending_t = t
 
     def predict(
-        self, t: float, pre: Preintegrated | None, scan: Preintegrated | None = None
+        self,
+        t: float,
+        pre: Preintegrated | None,
+        scan: Preintegrated | None = None,
+        origin: int | None = None,
     ) -> None:
-        """A new pose linked to the last one by the wheel odometry ``pre`` and/or the scan
-        match ``scan``: one between factor each; with both, each carries the robust kernel
-        (they check each other, the landmarks arbitrate); one alone is Gaussian."""
-        prev = self._prev = self._pose_estimate(X(self.k))
+        """A new pose linked to keyframe ``origin`` (default: the last) by the wheel odometry
+        ``pre`` and/or the scan match ``scan``: one between factor each; with both, each
+        carries the robust kernel (they check each other, the landmarks arbitrate); one
+        alone is Gaussian. (An earlier ``origin``: a continued session's first keyframe,
+        placed on a restored one.)"""
+        o = self._origin = self.k if origin is None else int(origin)
+        prev = self._prev = self._pose_estimate(X(o))
         self.k += 1
         self.times.append(t)
         motions = [m for m in (pre, scan) if m is not None]
@@ -191,18 +199,16 @@ class GraphBackend(GraphGuard, Backend):
         if kernel != "none":  # every link robust: a weak Gaussian one keeps the chain whole
             first = motions[0]
             self.new_graph.add(
-                gtsam.BetweenFactorPose2(X(self.k - 1), X(self.k), first.delta, weak_noise(3))
+                gtsam.BetweenFactorPose2(X(o), X(self.k), first.delta, weak_noise(3))
             )
         for m in motions:
             if m is pre and self._calibrated:
                 noise = models.noise_model(m.covariance_start, kernel)
-                f = calibrated_odometry_factor(
-                    X(self.k - 1), X(self.k), C, m, noise, cal.wheels, cal.dim
-                )
+                f = calibrated_odometry_factor(X(o), X(self.k), C, m, noise, cal.wheels, cal.dim)
                 self.new_graph.add(f)
                 continue
             noise = models.noise_model(m.covariance, kernel)
-            self.new_graph.add(gtsam.BetweenFactorPose2(X(self.k - 1), X(self.k), m.delta, noise))
+            self.new_graph.add(gtsam.BetweenFactorPose2(X(o), X(self.k), m.delta, noise))
         if self._calibrated:
             pre = with_calibration(pre, self._c[cal.wheels])
         if pre is None or scan is None:
@@ -237,7 +243,7 @@ class GraphBackend(GraphGuard, Backend):
         """The current (predicted) pose in the frame of keyframe ``j`` and its covariance in
         GTSAM's between convention (tangent at the relative pose): from the joint marginal of
         X(j) and the last committed pose, propagated through the new keyframe's motion."""
-        kp = self.k - 1
+        kp = self._origin
         A = self._pose_estimate(X(j))
         B = self._pose_estimate(X(kp))
         r = A.between(B)
@@ -249,6 +255,37 @@ class GraphBackend(GraphGuard, Backend):
         M = np.hstack([-Ad_d @ r.inverse().AdjointMap(), Ad_d])
         C = M @ J @ M.T + self._pre.covariance
         return r.compose(d), 0.5 * (C + C.T)
+
+    def restore(
+        self,
+        times: NDArray[np.float64],
+        poses: NDArray[np.float64],
+        links: list[Preintegrated],
+        loops: list[tuple[int, int, Preintegrated]],
+        cov: NDArray[np.float64],
+    ) -> None:
+        """Saved keyframes as the graph's first part (:meth:`Backend.restore`), the saved
+        poses as their initial estimate; one update. Links are Gaussian, loops robust, as
+        when they were first added."""
+        n = len(times)
+        if len(links) != n - 1:
+            raise ValueError(f"{len(links)} links for {n} keyframes")
+        self.start(float(times[0]), np.asarray(poses[0], dtype=float), cov)
+        for i in range(1, n):
+            m = links[i - 1]
+            noise = models.noise_model(m.covariance)
+            self.new_graph.add(gtsam.BetweenFactorPose2(X(i - 1), X(i), m.delta, noise))
+            self.new_values.insert(X(i), gtsam.Pose2(*poses[i]))
+            self.times.append(float(times[i]))
+            self.trajectory.append((float(times[i - 1]), np.array(poses[i - 1], float), None))
+        self.k = n - 1
+        for j, k, m in loops:
+            self.add_loop(j, k, m)
+        self._loop_added = True  # the whole estimate read after the update
+        self._pre = links[-1] if links else None
+        self._origin = max(n - 2, 0)
+        self._pending_t = float(times[-1])
+        self.commit()
 
     def add_loop(self, j: int, k: int, m: Preintegrated) -> None:
         """A verified loop closure: keyframe ``j`` to keyframe ``k`` (at most the current
@@ -282,7 +319,7 @@ class GraphBackend(GraphGuard, Backend):
         means = {lid: self._mean(lid, fresh=True) for lid in lids}
         # with calibration on a wheels-only link, its uncertainty enters the prediction
         cal = self._calibrated and self._pre.calibration_jacobian is not None
-        keys = [X(self.k - 1)] + ([C] if cal else []) + [L(lid) for lid in lids]
+        keys = [X(self._origin)] + ([C] if cal else []) + [L(lid) for lid in lids]
         J = self.joint_covariance(keys)
         # tangent (body) -> world for Pose2 blocks
         prev = self._prev
@@ -337,7 +374,8 @@ class GraphBackend(GraphGuard, Backend):
         keyframes (constant twist; a reading after the keyframe extrapolates it)."""
         kind = self.kinds[lid]
         own = f.own
-        if self.own_time and own is not None and self.k > 0 and kind in models.OWN_TIME_KINDS:
+        last_two = self.k > 0 and self._origin == self.k - 1
+        if self.own_time and own is not None and last_two and kind in models.OWN_TIME_KINDS:
             ta, tb = self.times[self.k - 1], self.times[self.k]
             if tb > ta:
                 s = (own.t - ta) / (tb - ta)

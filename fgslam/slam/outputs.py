@@ -197,6 +197,8 @@ def report_dict(res: SlamResult, true_map: dict[str, Any] | None = None) -> dict
         },
         "statistics": dict(res.stats),
     }
+    if res.continued is not None:
+        rep["continued"] = res.continued
     if res.loop_closures:
         acc = [c for c in res.loop_closures if c["accepted"]]
         rep["loop_closures"] = {

@@ -116,9 +116,13 @@ class SlamResult:
     loop_closures: list[dict] = field(default_factory=list)  # every attempt (loops.Closure)
     # each keyframe's laser points (robot frame, m; None: no laser), as ``times``
     keyframe_scans: list[NDArray[np.float64] | None] = field(default_factory=list)
-    # each keyframe's scan match from the keyframe before ((x, y, theta) in its frame and
-    # covariance, between convention; None: none), one fewer than ``times``
+    # each keyframe's link from the keyframe before ((x, y, theta) in its frame, covariance
+    # in the between convention, "scan" (the scan match) or "odometry" (the wheels alone);
+    # None: none), one fewer than ``times``
     keyframe_links: list = field(default_factory=list)
+    # a continued session (fgslam.session.join): what was continued, its keyframes (first
+    # in ``times``, their times shifted by time_offset s), the anchor; None: a new map
+    continued: dict | None = None
     # the calibration errors estimated: {"parameters": names (Calibration), "estimate": [...],
     # "sigma": [...] or None}; None when not estimated
     calibration: dict | None = None
@@ -172,11 +176,22 @@ class _Session(SlamStep):
         self.failed: dict | None = None
         self.filtered_times: list[float] = []  # s, one per entry of ``filtered``
 
-    def feed(self, sf, pre, pose0: NDArray[np.float64] | None, scan=None, speed=(0.0, 0.0)):
+    def feed(
+        self, sf, pre, pose0: NDArray[np.float64] | None, scan=None, speed=(0.0, 0.0), anchor=None
+    ):
         if self.failed is not None:
             return
         try:
-            self.keyframe(sf.t, sf.features, pre, pose0, scan=scan, points=sf.points, speed=speed)
+            self.keyframe(
+                sf.t,
+                sf.features,
+                pre,
+                pose0,
+                scan=scan,
+                points=sf.points,
+                speed=speed,
+                anchor=anchor,
+            )
         except BackendError as exc:
             self.failed = {"keyframe": self.k, "t": float(sf.t), "error": str(exc)}
         else:  # a keyframe that completed added its pose to ``filtered``
@@ -190,9 +205,18 @@ def run_slam(
     sensors: str = "fused",
     progress: Callable[[float], None] | None = None,
     association: str | None = None,
+    continuation=None,
 ) -> SlamResult:
     """Run SLAM with one backend over an event stream; see :func:`run_backends`."""
-    return run_backends(events, cfg, [backend], sensors, progress, association=association)[0]
+    return run_backends(
+        events,
+        cfg,
+        [backend],
+        sensors,
+        progress,
+        association=association,
+        continuation=continuation,
+    )[0]
 
 
 class SlamPipeline:
@@ -237,6 +261,7 @@ class SlamPipeline:
         association: str | None = None,
         keyframes: KeyframeParams | None = None,
         loops: LoopParams | None = None,
+        continuation=None,
     ) -> None:
         if sensors not in SENSORS:
             raise ValueError(f"unknown sensor mode {sensors!r}; expected one of {SENSORS}")
@@ -276,6 +301,7 @@ class SlamPipeline:
             elif b in ("isam2", "batch") and "graph" not in self.sessions:
                 loop = LoopCloser(lp, mp, origin, cfg.laser.sigma_time) if lp.enabled else None
                 self.sessions["graph"] = _Session("isam2", cfg, map_params, kp, loop, cal)
+        self.continuation = continuation
         self.reorder = ReorderBuffer(reorder_window)
         self.frontend = FrontEnd(cfg, sensors, select=self._select)
         self._steps: deque = deque()  # the scan odometry's decisions, in scan order
@@ -295,6 +321,19 @@ class SlamPipeline:
         self._fe_wall = 0.0
         self._busy = 0.0
         self._finished: list[SlamResult] | None = None
+        if continuation is not None:
+            self._restore(continuation)
+
+    def _restore(self, c) -> None:
+        """A continued session (:mod:`fgslam.session.join`): the graph starts from its
+        keyframes; the log is mapped from the anchor's scan on."""
+        if "ekf" in self.sessions or "graph" not in self.sessions:
+            raise ValueError("the EKF keeps no past keyframes: continue a session with isam2")
+        links, loops, missing = c.replay()
+        s = c.session
+        self.sessions["graph"].restore(c.times(), s.poses, s.scans, links, loops)
+        if missing:
+            self.stats["continued_links_missing"] = missing
 
     # -- feeding
 
@@ -317,6 +356,9 @@ class SlamPipeline:
         self.last_t = ev.t
         if self.first_t is None:
             self.first_t = ev.t
+        if self.continuation is not None and ev.t < self.continuation.anchor.t:
+            self.stats["events_before_anchor"] += 1  # not on the map yet
+            return 0
         if isinstance(ev, TruthPose):
             self.truth_t.append(ev.t)
             self.truth.append((ev.x, ev.y, ev.theta))
@@ -351,13 +393,6 @@ class SlamPipeline:
         scan = step.scan if self.keyframe_params.odometry != "wheels" else None
         self._kf_rel.append(step.rel)
         self._kf_points.append(step.points)
-        if len(self.kf_times):  # the link into this keyframe, from the one before
-            m = step.scan
-            self._kf_links.append(
-                None
-                if m is None
-                else (np.array([m.delta.x(), m.delta.y(), m.delta.theta()]), m.covariance)
-            )
         self._keyframe(sf, scan, step.speed)
         sess = next(iter(self.sessions.values()))
         self.scan_odometry.map_support(len(sf.features) if sess.p.landmarks else 0, sess.tracked)
@@ -380,7 +415,11 @@ class SlamPipeline:
         if pre.hole_seconds:  # odometry hole: its covariance covers the possible motion
             self.stats["odometry_hole_intervals"] += 1
             self.stats["odometry_hole_seconds"] += round(pre.hole_seconds, 3)
-        if first:
+        anchor = None
+        if first and self.continuation is not None:
+            self._odo_pose, cov = self._anchor_pose(sf.t, ts, lr, ll)
+            anchor = self.continuation.first_link(self._odo_pose, cov)
+        elif first:
             self._odo_pose = _truth_at(self.truth_t, self.truth, sf.t)
         elif lr:
             self._odo_pose = integrate_poses(lr, ll, o.wheelbase, self._odo_pose)[-1]
@@ -391,11 +430,27 @@ class SlamPipeline:
         wheels = pre
         if scan is not None and self.keyframe_params.odometry == "scan":
             wheels = None  # the scan match alone (wheels only where it was rejected)
+        if not first:  # the link into this keyframe, from the one before
+            m, kind = (scan, "scan") if scan is not None else (wheels, "odometry")
+            self._kf_links.append((_xyt(m.delta), m.covariance, kind) if m is not None else None)
+        if anchor is not None:
+            wheels = scan = None
         for sess in self.sessions.values():
-            sess.feed(sf, wheels, self._odo_pose if first else None, scan, speed)
+            sess.feed(sf, wheels, self._odo_pose if first else None, scan, speed, anchor)
         self.stats.update({f"frontend_{k}": v for k, v in sf.stats.items()})
         self.kf_times.append(sf.t)
         self._kf_odo.append(self._odo_pose.copy())
+
+    def _anchor_pose(self, t: float, ts, lr, ll) -> tuple[NDArray[np.float64], NDArray]:
+        """A continued run's first keyframe (at ``t``): the anchor's pose and covariance
+        (body frame) carried to ``t`` by the wheel samples between them."""
+        a = self.continuation.anchor
+        pose, cov = np.asarray(a.pose, float), np.asarray(a.cov, float)
+        if not lr or t <= a.t:
+            return pose.copy(), cov.copy()
+        pre = preintegrate(lr, ll, self._odo_params, ts, (a.t, t), None)
+        Ad = pre.delta.inverse().AdjointMap()
+        return compose_poses(pose, _xyt(pre.delta)), Ad @ cov @ Ad.T + pre.covariance
 
     # -- state
 
@@ -478,6 +533,7 @@ class SlamPipeline:
             kf_rel=self._kf_rel,
             kf_points=self._kf_points,
             kf_links=self._kf_links,
+            prefix=self.continuation,
         )
 
     def finish(self) -> list[SlamResult]:
@@ -514,6 +570,7 @@ class SlamPipeline:
             kf_rel=self._kf_rel,
             kf_points=self._kf_points,
             kf_links=self._kf_links,
+            prefix=self.continuation,
         )
         # (session, name) in the order to finish them: iSAM2's estimate before the batch solve
         order = [("ekf", "ekf"), ("graph", "isam2"), ("graph", "batch")]
@@ -542,6 +599,7 @@ def run_backends(
     association: str | None = None,
     keyframes: KeyframeParams | None = None,
     loops: LoopParams | None = None,
+    continuation=None,
 ) -> list[SlamResult]:
     """Run several backends on one pass of the front end over an event stream (in time order
     up to a :class:`ReorderBuffer` window of ``REORDER_WINDOW`` s; later events are dropped
@@ -550,6 +608,7 @@ def run_backends(
     ``batch`` shares the iSAM2 run's graph when both are asked for: it is that graph solved
     by Levenberg-Marquardt at the end. ``progress`` is called with each event's time.
     Results come in the order of ``backends``. ``association``: "jcbb" (default) or "nn".
+    ``continuation``: a saved session to continue (:mod:`fgslam.session.join`).
     See :class:`SlamPipeline`."""
     pipe = SlamPipeline(
         cfg,
@@ -560,6 +619,7 @@ def run_backends(
         association=association,
         keyframes=keyframes,
         loops=loops,
+        continuation=continuation,
     )
     for ev in events:
         pipe.add(ev)
@@ -585,12 +645,15 @@ def _result(
     kf_rel=(),
     kf_points=(),
     kf_links=(),
+    prefix=None,
 ) -> SlamResult:
     """Finish one session's backend and package its result; ``shared`` (s) is the reading
     and front-end time that every backend of the pass is charged with. Not ``final``: the
     estimate so far, finishing nothing (the trajectory as estimated at each keyframe, no
     landmark covariances). ``be``: what gives the results (default the session's backend;
-    a :class:`~fgslam.slam.graph.BatchSmoother` of it for "batch")."""
+    a :class:`~fgslam.slam.graph.BatchSmoother` of it for "batch"). ``prefix``: the
+    continued session (:class:`fgslam.session.join.Continuation`) whose keyframes come first
+    in the graph."""
     be = sess.be if be is None else be
     t0 = time.perf_counter()
     traj = be.finish() if final else list(sess.be.trajectory)
@@ -613,10 +676,24 @@ def _result(
     sess_wall = sess.wall + batch_seconds
     times = np.array([p[0] for p in traj])
     poses = np.array([p[1] for p in traj]).reshape(-1, 3)
+    continued = None
+    if prefix is not None:  # the saved keyframes first, then this log's
+        kf_rel_new = kf_rel
+        n0, saved = prefix.keyframes, prefix.session.poses
+        off = prefix.time_offset
+        saved_between = [(t + off, int(k), rel) for t, k, *rel in prefix.session.between]
+        between = saved_between + [(t, k + n0, rel) for t, k, rel in between if k >= 0]
+        # (the saved scans after the last saved keyframe keep their odometry: no link on)
+        kf_rel = [np.zeros(3), *between_poses(saved[:-1], saved[1:]), np.full(3, np.nan)]
+        kf_rel += list(kf_rel_new[1:])
+        kf_points = list(prefix.session.scans) + list(kf_points)
+        kf_links = [*prefix.links(), None, *kf_links]
+        continued = prefix.to_json()
     scan_t, scan_p = place_scans(times, poses, between, kf_rel)
     return SlamResult(
         keyframe_scans=list(kf_points[: len(times)]),
         keyframe_links=list(kf_links[: max(len(times) - 1, 0)]),
+        continued=continued,
         scan_times=scan_t,
         scan_poses=scan_p,
         loop_closures=[c.to_json() for c in sess.loops.closures] if sess.loops else [],
@@ -665,7 +742,9 @@ def place_scans(
     odometry's motion to keyframe k + 1 (``kf_rel[k + 1]``, in keyframe k's frame): E =
     (X_k R_k+1)^-1 X_k+1, applied as a * E (tangent, scaled) with a the scan's progress
     along R_k+1 (travel + 0.5 m/rad x turn, in [0, 1]). The scans then meet keyframe k + 1
-    instead of jumping to it; the scans after the last keyframe keep their odometry."""
+    instead of jumping to it; the scans after the last keyframe, or before a keyframe whose
+    ``kf_rel`` is NaN (not reached by odometry: a continued session's first), keep their
+    odometry."""
     rows = [(t, k, rel) for t, k, rel in between if 0 <= k < len(poses)]
     if not rows:
         return times.copy(), poses.copy()
@@ -674,9 +753,11 @@ def place_scans(
     placed = compose_poses(poses[k], rel)
     n = min(len(poses), len(kf_rel))
     ok = k + 1 < n
+    R_all = np.asarray(kf_rel[:n], dtype=float).reshape(-1, 3)
+    ok[ok] &= np.isfinite(R_all[k[ok] + 1]).all(axis=1)
     if ok.any():
         kk = k[ok]
-        R = np.asarray(kf_rel[:n], dtype=float).reshape(-1, 3)[kk + 1]
+        R = R_all[kk + 1]
         E = between_poses(compose_poses(poses[kk], R), poses[kk + 1])
         progress = np.hypot(rel[ok, 0], rel[ok, 1]) + 0.5 * np.abs(rel[ok, 2])
         total = np.hypot(R[:, 0], R[:, 1]) + 0.5 * np.abs(R[:, 2])
@@ -686,6 +767,10 @@ def place_scans(
     p = np.vstack([poses, placed])
     order = np.argsort(t, kind="stable")
     return t[order], p[order]
+
+
+def _xyt(p) -> NDArray[np.float64]:
+    return np.array([p.x(), p.y(), p.theta()])
 
 
 def _truth_at(

@@ -65,6 +65,24 @@ class SlamStep:
     def landmarks(self):
         return self.map.landmarks
 
+    def restore(
+        self,
+        times: NDArray[np.float64],
+        poses: NDArray[np.float64],
+        scans: list[NDArray[np.float64] | None],
+        links: list[Preintegrated],
+        loops: list[tuple[int, int, Preintegrated]],
+    ) -> None:
+        """Start from saved keyframes instead of a first pose (a continued session;
+        :meth:`Backend.restore`): the backend holds them, the loop closer their scans
+        (robot frame) at their poses (world); the next keyframe is number ``len(times)``."""
+        self.be.restore(times, poses, links, loops, self._start_cov)
+        if self.loops is not None:
+            for i, (pose, points) in enumerate(zip(poses, scans, strict=True)):
+                self.loops.add_keyframe(i, points, pose, (0.0, 0.0))
+        self.started = True
+        self.k = self.map.k = len(times) - 1
+
     def keyframe(
         self,
         t: float,
@@ -75,12 +93,16 @@ class SlamStep:
         scan: Preintegrated | None = None,
         points: NDArray[np.float64] | None = None,
         speed: tuple[float, float] = (0.0, 0.0),
+        anchor: tuple[int, Preintegrated] | None = None,
     ) -> list[int | None]:
         """Process one keyframe at time ``t`` (the first: ``pose0``, world; later: ``pre``, the
         odometry since the last one, and/or ``scan``, the scan match from the last keyframe).
         ``given``: the caller's landmark id per feature (data association given, e.g.
         Victoria Park's file), skipping association and lifecycle. ``points``: the keyframe's
         laser scan (robot frame) for loop closures, ``speed`` the robot's (m/s, rad/s) then.
+        ``anchor``: (j, relative pose from keyframe j): this keyframe linked to the
+        restored keyframe j (:meth:`restore`) by that alone, not to the last one; no loop
+        search at it.
         Returns the landmark id each feature went to (None: not used). Raises the backend's
         error (e.g. :class:`fgslam.slam.graph.BackendError`) unchanged."""
         t0 = time.perf_counter()
@@ -93,6 +115,8 @@ class SlamStep:
         if not self.started:
             be.start(t, np.zeros(3) if pose0 is None else pose0, self._start_cov)
             self.started = True
+        elif anchor is not None:
+            be.predict(t, None, anchor[1], origin=anchor[0])
         else:
             be.predict(t, pre, scan)
         for keep, drop in self._pending_merges:
@@ -111,7 +135,7 @@ class SlamStep:
             where = self._keyframe_own(t, features, pose)
         if self.loops is not None:
             self.loops.add_keyframe(self.k, points, pose, speed)
-            if self.k > 0:
+            if self.k > 0 and anchor is None:
                 for c in self.loops.try_close(self.k, be, pose):
                     be.add_loop(c.j, c.k, relative_pose(c.pose, c.cov))
         be.commit()
