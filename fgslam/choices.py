@@ -17,6 +17,7 @@ SONAR_TIMING_CHOICES = ("scan-frame", "own-time")
 SONAR_CALIBRATION_CHOICES = ("off", "sound")
 ROBUST_CHOICES = ("none", "huber", "cauchy", "dcs")  # factors.noise.ROBUST_KERNELS
 FACTORIZATION_CHOICES = ("QR", "CHOLESKY")
+LOCALIZE_MOTION_CHOICES = ("wheels", "fused", "scan")
 
 # (section, key) -> choices
 CHOICES = {
@@ -29,4 +30,5 @@ CHOICES = {
     ("laser", "calibration"): LASER_CALIBRATION_CHOICES,
     ("graph", "robust"): ROBUST_CHOICES,
     ("graph", "factorization"): FACTORIZATION_CHOICES,
+    ("localize", "motion"): LOCALIZE_MOTION_CHOICES,
 }

@@ -19,6 +19,8 @@ def register(sub: argparse._SubParsersAction) -> None:
             "found by a global search over the whole map (every place, every heading), "
             "confirmed over several scans; a robot lost (matches failing in a row: kidnapped) "
             "is searched for again. Writes trajectory.tum (every localized scan), "
+            "trajectory_bridged.tum (every scan: those not localized placed by the odometry "
+            "between localized ones, an offline estimate), "
             "report.json (when it was localized and how confidently, lost spells, speed, the "
             "error against the log's truth if it has one) and map.png (the map's grid with "
             "the path) into --out. The [localize] section of the configuration sets the "
@@ -62,5 +64,5 @@ def run(args: argparse.Namespace) -> int:
         progress.close()
     rep = write_localization(session, res, args.out, {"map": str(args.map), "log": str(args.log)})
     print(summary(rep))
-    print(f"wrote {args.out}/trajectory.tum, report.json, map.png")
+    print(f"wrote {args.out}/trajectory.tum, trajectory_bridged.tum, report.json, map.png")
     return 0 if rep["localized_at"] is not None else 1

@@ -109,7 +109,7 @@ def run(args: argparse.Namespace) -> int:
         from fgslam.session.outputs import summary
 
         print(summary(rep))
-        print(f"wrote {args.out}/trajectory.tum, report.json, map.png")
+        print(f"wrote {args.out}/trajectory.tum, trajectory_bridged.tum, report.json, map.png")
         return 0
     print_summary(rep, args.out)
     return 0

@@ -11,7 +11,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-from fgslam.choices import SCANMATCH_CHOICES
+from fgslam.choices import LOCALIZE_MOTION_CHOICES, SCANMATCH_CHOICES
 from fgslam.config.fields import _meta, keys, linked, param
 from fgslam.config.sensors import LaserConfig, OdometryConfig, SonarConfig
 
@@ -536,7 +536,8 @@ class LocalizeParams:
     ``max_scans``), within the matcher's window, unless less than ``min_view`` of its
     returns fall where the map's grid saw something (off the map: the odometry carries the
     pose); the last ``window``
-    matched poses are smoothed with the wheel odometry between them. Lost after
+    matched poses are smoothed with the wheel odometry between them; the pose is carried from
+    scan to scan by ``motion`` (:class:`~fgslam.slam.keyframes.FusedMotion`). Lost after
     ``lost_after`` failed matches in a row, it searches near the pose the odometry carries
     on. Global localization (no initial pose, or lost for ``search_after`` m) searches around
     every place (map keyframes ``spacing`` apart) over +-``spacing`` and every heading
@@ -560,6 +561,12 @@ class LocalizeParams:
     confirm_margin: float = param(0.1, "1", "... whose mean score beats every other's by this")
     global_step: float = param(math.radians(2.0), "rad", "heading step of the global search")
     cache_size: int = param(64, "count", "local maps kept, prepared for matching")
+    motion: str = param(
+        "wheels",
+        "choice",
+        "the motion between scans: wheels, fused (the scan odometry and the wheels by "
+        "their covariances), scan (the scan odometry alone)",
+    )
 
     def __post_init__(self) -> None:
         for name in ("spacing", "radius", "every_distance", "global_step"):
@@ -568,6 +575,10 @@ class LocalizeParams:
         for name in ("max_scans", "window", "lost_after", "hypotheses", "confirm"):
             if getattr(self, name) < 1:
                 raise ValueError(f"localize.{name} must be >= 1, got {getattr(self, name)!r}")
+        if self.motion not in LOCALIZE_MOTION_CHOICES:
+            raise ValueError(
+                f"localize.motion must be one of {LOCALIZE_MOTION_CHOICES}, got {self.motion!r}"
+            )
 
     @classmethod
     def from_config(cls, cfg: RobotConfig) -> LocalizeParams:

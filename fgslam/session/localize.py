@@ -11,14 +11,20 @@ while the same keyframes make it. Places: map keyframes at least ``spacing`` apa
 map keyframe lies within ``spacing`` of one. The map's occupancy grid (:class:`MapCheck`)
 says where the map saw something and what it saw free.
 
+Motion (``motion``): the wheel odometry carries the pose from scan to scan ("wheels"), or
+the scan odometry of the mapping (:class:`~fgslam.slam.keyframes.ScanOdometry`, each scan
+matched against the ones just before it) fused with the wheels by their covariances
+("fused"), or alone ("scan"); :class:`~fgslam.slam.keyframes.FusedMotion`.
+
 Tracking: a scan is matched when the robot has moved ``every_distance`` or turned
-``every_angle`` since the last matched scan; the wheel odometry since then predicts its pose,
-the matcher searches its window around it against the local map there. The last ``window``
+``every_angle`` since the last matched scan; the motion since then predicts its pose, the
+matcher searches its window around it against the local map there. The last ``window``
 matched poses, each with its match as a prior (the map is fixed, so a match is an absolute
 measurement of the pose: the match's covariance, body tangent) and the wheel odometry between
 consecutive ones (:func:`factors.odometry.preintegrate`), are solved together
 (Levenberg-Marquardt); the oldest carries the information of the poses before it. A scan not
-matched is placed by the wheel odometry from the last matched one. Where less than
+matched is placed by the motion from the last matched one; offline,
+:meth:`LocalizationResult.bridged` places the scans not localized too. Where less than
 ``min_view`` of the scan's returns at the prediction fall where the map saw something (the
 robot has left the mapped part), the scan is not matched: the odometry carries the pose on,
 and nothing counts as failed. ``lost_after`` matches in a row that failed or that the map
@@ -76,6 +82,7 @@ from factors.geometry import (
 )
 from factors.odometry import preintegrate
 from fgslam.config import LocalizeParams, MatchParams, RobotConfig
+from fgslam.config.robot import KeyframeParams
 from fgslam.evaluation.metrics import interpolate_poses
 from fgslam.events import Event, OdometryEvent, TruthPose
 from fgslam.frontend.pipeline import FrontEnd
@@ -83,6 +90,7 @@ from fgslam.io.ordering import REORDER_WINDOW, ReorderBuffer
 from fgslam.scanmatch import Match, Reference, match
 from fgslam.scanmatch.points import voxel_index
 from fgslam.session.store import Session, SessionError
+from fgslam.slam.keyframes import FusedMotion, ScanOdometry
 
 # a place's overlapping scans thinned to one point per matcher cell: else the local lines of
 # ICP are fitted to a few centimetres of stacked returns (overlap 0.07 instead of 0.48)
@@ -212,12 +220,15 @@ class _Track:
 class LocalizationResult:
     """What :class:`Localizer` produced. ``times``, ``poses``: every scan's pose (world;
     NaN while not localized); ``matched``: whether that scan's pose comes from a match
-    (else from the wheels since the last matched one); ``events``: what happened when
-    (localized, lost, with their evidence); ``stats`` counts."""
+    (else from the odometry since the last matched one); ``odometry``: each scan's pose
+    along the odometry that carried the pose (the scan odometry's chain or the wheels';
+    its own frame); ``events``: what happened when (localized, lost, with their evidence);
+    ``stats`` counts. :meth:`bridged` fills the gaps."""
 
     times: NDArray[np.float64]
     poses: NDArray[np.float64]
     matched: NDArray[np.bool_]
+    odometry: NDArray[np.float64]
     events: list[dict]
     stats: dict
     truth_t: NDArray[np.float64]
@@ -225,6 +236,28 @@ class LocalizationResult:
     wall_time: float
     log_duration: float
     places: int
+
+    def bridged(self) -> NDArray[np.float64]:
+        """Every scan's pose, the scans not localized (before the first localization, lost,
+        after the last) placed by the odometry from the localized scans on either side, the
+        difference of the two spread over the gap by time (one side: carried from it). An
+        offline estimate: right where the odometry holds (the scan odometry across a stretch
+        the map does not show), wrong across a kidnapping. NaN when nothing was localized."""
+        ok = np.isfinite(self.poses).all(axis=1)
+        out = self.poses.copy()
+        idx, gap = np.flatnonzero(ok), np.flatnonzero(~ok)
+        if not len(idx) or not len(gap):
+            return out
+        k = np.searchsorted(idx, gap)
+        a = idx[np.maximum(k - 1, 0)]
+        b = idx[np.minimum(k, len(idx) - 1)]
+        o, p, t = self.odometry, self.poses, self.times
+        pa = compose_poses(p[a], between_poses(o[a], o[gap]))
+        pb = compose_poses(p[b], between_poses(o[b], o[gap]))
+        span = np.maximum(t[b] - t[a], 1e-9)
+        w = np.where(k == 0, 1.0, np.where(k == len(idx), 0.0, (t[gap] - t[a]) / span))
+        out[gap] = compose_poses(pa, np.clip(w, 0.0, 1.0)[:, None] * between_poses(pa, pb))
+        return out
 
     def report(self) -> dict:
         """report.json's content: when it was localized and how confidently, lost spells,
@@ -236,6 +269,7 @@ class LocalizationResult:
             "scans": len(self.times),
             "scans_localized": int(ok.sum()),
             "scans_matched": int(self.matched.sum()),
+            "scans_bridged": int((~ok).sum()) if ok.any() else 0,
             "places": self.places,
             "localized": bool(loc),
             "localized_at": loc[0]["t"] if loc else None,
@@ -255,14 +289,16 @@ class LocalizationResult:
             rep["error_vs_truth"] = err
         return rep
 
-    def write_trajectory(self, path) -> int:
-        """The localized scans' poses as a TUM trajectory (atomically); returns how many."""
+    def write_trajectory(self, path, bridged: bool = False) -> int:
+        """The localized scans' poses (``bridged``: every scan's, :meth:`bridged`) as a TUM
+        trajectory (atomically); returns how many."""
         from fgslam.evaluation import metrics as evaluation
         from fgslam.io import safeio
 
-        ok = np.isfinite(self.poses).all(axis=1)
+        poses = self.bridged() if bridged else self.poses
+        ok = np.isfinite(poses).all(axis=1)
         with safeio.atomic_path(path) as tmp:
-            evaluation.write_tum(tmp, self.times[ok], self.poses[ok])
+            evaluation.write_tum(tmp, self.times[ok], poses[ok])
         return int(ok.sum())
 
     def errors(self) -> dict | None:
@@ -347,12 +383,26 @@ class Localizer:
         self.events: list[dict] = []
         self.times: list[float] = []
         self.poses: list[NDArray[np.float64]] = []
+        self.odometry: list[NDArray[np.float64]] = []  # each scan's, the motion's frame
         self.matched: list[bool] = []
         self.truth_t: list[float] = []
         self.truth: list[tuple[float, float, float]] = []
         self.first_t: float | None = None
         self.last_t = -math.inf
         self._odom_prev: NDArray[np.float64] | None = None
+        # the motion between scans other than the wheels' (module doc)
+        kp = KeyframeParams.from_config(cfg)
+        origin = (cfg.laser.mount.x, cfg.laser.mount.y)
+        self.motion = (
+            FusedMotion(
+                ScanOdometry(kp, MatchParams.from_config(cfg), origin, cfg.laser.sigma_time),
+                self._odo,
+                kp.motion_gate_p,
+                fuse=self.p.motion == "fused",
+            )
+            if self.p.motion != "wheels"
+            else None
+        )
         self._moved = np.zeros(3)  # since the last matched scan (odometry, robot frame)
         self._since_search = np.zeros(3)
         self._search_travel = 0.0  # m of path since the last global search
@@ -409,9 +459,10 @@ class Localizer:
             self.truth.append((ev.x, ev.y, ev.theta))
             return
         if isinstance(ev, OdometryEvent):
-            self._samples.append(
-                (ev.t, *self.cfg.odometry.wheel_travel(ev.ticks_right, ev.ticks_left))
-            )
+            sample = (ev.t, *self.cfg.odometry.wheel_travel(ev.ticks_right, ev.ticks_left))
+            self._samples.append(sample)
+            if self.motion is not None:
+                self.motion.sample(*sample)
         self.frontend.add(ev)
         if self.progress is not None:
             self.progress(ev.t)
@@ -424,6 +475,8 @@ class Localizer:
 
     def _select(self, t: float, points, odom, v: float = 0.0, w: float = 0.0) -> bool:
         odom = np.asarray(odom, dtype=float)
+        if self.motion is not None:
+            odom = self.motion.add(t, points, odom, (v, w))
         step = np.zeros(3) if self._odom_prev is None else between_poses(self._odom_prev, odom)
         self._odom_prev = odom
         self._moved = compose_poses(self._moved, step)
@@ -455,6 +508,7 @@ class Localizer:
         self._placed.append((self._anchor if located else -1, self._rel.copy()))
         self.times.append(t)
         self.poses.append(self._track.pose.copy() if located else np.full(3, np.nan))
+        self.odometry.append(odom)
         self.matched.append(matched)
         return False
 
@@ -773,6 +827,7 @@ class Localizer:
             times=np.array(self.times),
             poses=poses,
             matched=np.array(self.matched, dtype=bool),
+            odometry=np.array(self.odometry).reshape(n, 3),
             events=self.events,
             stats=dict(self.stats),
             truth_t=np.array(self.truth_t),

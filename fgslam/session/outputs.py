@@ -1,5 +1,6 @@
 """The outputs of a localization (``fgslam localize``, ``fgslam online --map``):
-trajectory.tum (every localized scan), report.json and map.png (the saved map's occupancy
+trajectory.tum (every localized scan), trajectory_bridged.tum (every scan, the rest placed by
+the odometry between localized ones), report.json and map.png (the saved map's occupancy
 grid with the localized path, where it was localized and where it was lost)."""
 
 from __future__ import annotations
@@ -59,13 +60,14 @@ def plot_localization(session, res, path: str | Path) -> None:
 def write_localization(
     session, res, out: str | Path, extra: dict[str, Any] | None = None
 ) -> dict[str, Any]:
-    """Write trajectory.tum, map.png and report.json (its content, with ``extra``, returned)
-    into the folder ``out``, each atomically."""
+    """Write trajectory.tum, trajectory_bridged.tum, map.png and report.json (its content,
+    with ``extra``, returned) into the folder ``out``, each atomically."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     rep = res.report()
     rep.update(extra or {})
     res.write_trajectory(out / "trajectory.tum")
+    res.write_trajectory(out / "trajectory_bridged.tum", bridged=True)
     plot_localization(session, res, out / "map.png")
     safeio.write_text(out / "report.json", json.dumps(rep, indent=1))
     return rep
@@ -78,7 +80,8 @@ def summary(rep: dict[str, Any]) -> str:
         return f"not localized: {rep['scans']} scans, no answer of the global search confirmed"
     msg = (
         f"localized at t = {loc_at:.2f} s ({rep['first_localization']['how']}); "
-        f"{rep['scans_localized']} of {rep['scans']} scans localized, "
+        f"{rep['scans_localized']} of {rep['scans']} scans localized (the rest bridged by "
+        "the odometry in trajectory_bridged.tum), "
         f"{rep['relocalizations']} relocalizations, {len(rep['lost'])} times lost; "
         f"{rep['real_time_factor']}x real time"
     )

@@ -24,9 +24,16 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.stats import chi2
 
 from factors.geometry import between_poses, compose_poses, transform_points
-from factors.odometry import Preintegrated, relative_pose
+from factors.odometry import (
+    Preintegrated,
+    fuse_motions,
+    link_motions,
+    preintegrate,
+    relative_pose,
+)
 from factors.sensor_models import time_registration_inflation
 from fgslam.config import KeyframeParams
 from fgslam.scanmatch import Match, MatchParams, Reference, match
@@ -100,6 +107,12 @@ class ScanOdometry:
         self._started = False
         self._chain = np.zeros(3)  # the keyframe's pose along the scan-odometry chain
         self._recent: deque = deque(maxlen=params.local_map)  # (chain pose, points)
+
+    @property
+    def pose(self) -> NDArray[np.float64]:
+        """The last scan's pose along the scan-odometry chain (the frame of the first scan;
+        m, rad): the chain of keyframes composed with the scan's pose in the last one."""
+        return compose_poses(self._chain, self._rel)
 
     def map_support(self, features: int, tracked: int) -> None:
         """How many features the last keyframe had and how many of them went to landmarks
@@ -205,3 +218,72 @@ class ScanOdometry:
         if m is not None and (not m.ok or m.overlap < p.min_overlap):
             return "overlap"
         return None
+
+
+class FusedMotion:
+    """The robot's motion from scan to scan, for a tracker that keeps no graph (the
+    localizer): between the scan odometry's keyframes its match to the last (the wheels where
+    that failed), and at each keyframe the wheels since the last fused with its scan match
+    (:func:`factors.odometry.fuse_motions`; the scan match alone where the two disagree
+    beyond ``motion_gate_p``, as the EKF commits: :func:`factors.odometry.link_motions`).
+    Each source weighs by its covariance: along a bare corridor, where the match is
+    ambiguous, the wheels; in a fast turn, where the wheels slip, the match. Feed wheel
+    samples (:meth:`sample`) and scans (:meth:`add`) in time order; :attr:`pose` is the last
+    scan's pose in the frame of the first (m, rad)."""
+
+    def __init__(
+        self, odometry: ScanOdometry, odo_params, motion_gate_p: float, fuse: bool = True
+    ) -> None:
+        """``fuse`` False: the scan odometry alone (:attr:`ScanOdometry.pose`; the wheels
+        only where its matches failed)."""
+        self.scan = odometry
+        self.fuse = fuse
+        self._params = odo_params
+        self._gate = float(chi2.ppf(motion_gate_p, 3))
+        self._samples: deque[tuple[float, float, float]] = deque()
+        self._last_sample_t: float | None = None
+        self._kf_t: float | None = None
+        self._kf_pose = np.zeros(3)  # the last keyframe's fused pose
+        self.pose = np.zeros(3)
+        self.stats: Counter = Counter()
+
+    def sample(self, t: float, right: float, left: float) -> None:
+        """One wheel odometry sample: time (s), wheel travel right and left (m)."""
+        self._samples.append((t, right, left))
+
+    def add(
+        self, t: float, points, odom: NDArray[np.float64], speed: tuple[float, float]
+    ) -> NDArray[np.float64]:
+        """One scan at ``t`` (robot-frame points, the wheel odometry pose, the speed); returns
+        its pose (:attr:`pose`)."""
+        step = self.scan.add(points, np.asarray(odom, dtype=float), speed)
+        if not self.fuse:
+            self.pose = self.scan.pose
+            return self.pose
+        m = step.match
+        scan = step.scan
+        if not step.keyframe and m is not None and m.ok:
+            scan = relative_pose(m.pose, m.cov)
+        n = sum(1 for s in self._samples if s[0] <= t)
+        ts = [s[0] for s in list(self._samples)[:n]]
+        lr = [s[1] for s in list(self._samples)[:n]]
+        ll = [s[2] for s in list(self._samples)[:n]]
+        if self._kf_t is None:  # the first scan
+            rel = np.zeros(3)
+        else:
+            pre = preintegrate(lr, ll, self._params, ts, (self._kf_t, t), self._last_sample_t)
+            motion = pre
+            if scan is not None:
+                wheels, scan = link_motions(pre, scan, self._gate)
+                self.stats["motion_disagreements"] += wheels is None
+                motion = scan if wheels is None else fuse_motions(wheels, scan)
+            d = motion.delta
+            rel = np.array([d.x(), d.y(), d.theta()])
+        self.pose = compose_poses(self._kf_pose, rel)
+        if step.keyframe or self._kf_t is None:
+            for _ in range(n):
+                self._samples.popleft()
+            if ts:
+                self._last_sample_t = ts[-1]
+            self._kf_t, self._kf_pose = t, self.pose.copy()
+        return self.pose
