@@ -20,15 +20,18 @@ section 1; its truth is the simulator's per-run draw).
 Prints a table of means over seeds (ATE RMSE, maximum error, final error, NEES, landmarks,
 time) and the share of seeds in which the run "kept track" (maximum position error below
 0.5 m); writes experiments/paper_corridor.png and the per-seed reports to
-experiments/out/paper_corridor.json.
+experiments/out/paper_corridor.json. The seeds run as a sweep on a local Dask cluster of
+``--workers`` (fgslam.sweep; each seed's rows kept under experiments/out/, so that a run
+stopped and started again with the same options runs only the seeds still missing).
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import tempfile
-from concurrent.futures import ProcessPoolExecutor
+from functools import partial
 from pathlib import Path
 
 import matplotlib
@@ -55,6 +58,9 @@ from fgslam.sim.simulate import calibration_truth
 from fgslam.sim.world import load_world
 from fgslam.slam.outputs import report_dict
 from fgslam.slam.runner import BACKENDS, SENSORS, run_backends
+from fgslam.sweep import run_sweep, spec_from_dict
+from fgslam.sweep.cell import FunctionCell, finished
+from fgslam.sweep.engine import cell_folder
 
 HERE = Path(__file__).resolve().parent
 KEPT_TRACK = 0.5  # m of maximum position error
@@ -118,6 +124,37 @@ def one_seed(
                 rep["error_curve"] = [res.times.tolist()[::10], err.tolist()[::10]]
                 rows.append(rep)
         return rows
+
+
+def _seed_rows(opts: dict, settings: dict) -> list[dict]:
+    return one_seed(settings["seed"], **opts)
+
+
+def sweep_seeds(opts: dict, seeds: int, workers: int, name: str) -> list[dict]:
+    """Seeds 0 .. seeds - 1 with the options ``opts`` of :func:`one_seed`, as a sweep on a
+    local Dask cluster (fgslam.sweep): one cell per seed under experiments/out/<name>-<hash
+    of the options>/, so that a run stopped and started again only runs the seeds missing."""
+    key = hashlib.sha1(json.dumps(opts, sort_keys=True).encode()).hexdigest()[:8]
+    out = HERE / "out" / f"{Path(name).stem}-{key}"
+    spec = spec_from_dict({"name": name, "grid": {"seed": list(range(seeds))}})
+
+    def progress(p: dict) -> None:
+        if "dashboard" not in p:
+            print(f"{p['done']} of {p['total']} seeds done, {p['failed']} failed", flush=True)
+
+    run = run_sweep(
+        spec,
+        out,
+        workers=workers,
+        progress=progress,
+        cell_fn=FunctionCell(partial(_seed_rows, opts)),
+    )
+    if run.failed:
+        raise SystemExit(f"seeds failed: {run.failed}")
+    rows: list[dict] = []
+    for c in spec.cells:
+        rows.extend(finished(cell_folder(out, c.id))["result"])
+    return rows
 
 
 def _groups(rows: list[dict]):
@@ -293,24 +330,18 @@ def main() -> None:
         print(summarise(rows))
         plot(rows, HERE / args.json.replace(".json", ".png"))
         return
-    rows: list[dict] = []
-    with ProcessPoolExecutor(max_workers=args.workers) as pool:
-        n = args.seeds
-        for rs in pool.map(
-            one_seed,
-            range(n),
-            [tuple(args.sensors)] * n,
-            [args.association] * n,
-            [args.mode] * n,
-            [args.calibration] * n,
-            [args.laser_calibration] * n,
-            [args.corners] * n,
-            [args.points_from] * n,
-            [args.sonar_timing] * n,
-            [args.sonar_calibration] * n,
-        ):
-            rows.extend(rs)
-            print(f"seed {rs[0]['seed']} done", flush=True)
+    opts = {
+        "sensors_list": tuple(args.sensors),
+        "association": args.association,
+        "mode": args.mode,
+        "calibration": args.calibration,
+        "laser_calibration": args.laser_calibration,
+        "corners": args.corners,
+        "points_from": args.points_from,
+        "sonar_timing": args.sonar_timing,
+        "sonar_calibration": args.sonar_calibration,
+    }
+    rows = sweep_seeds(opts, args.seeds, args.workers, args.json)
     (HERE / "out").mkdir(exist_ok=True)
     (HERE / "out" / args.json).write_text(json.dumps(rows))
     print(summarise(rows))

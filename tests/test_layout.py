@@ -156,6 +156,7 @@ LAYERS = (
     ("fgslam.slam",),
     ("fgslam.session",),  # map reuse: saved sessions, localization on them
     ("fgslam.online",),
+    ("fgslam.sweep",),  # many runs on Dask
     ("fgslam.cli", "fgslam.__main__"),
 )
 

@@ -30,6 +30,7 @@ from fgslam.cli import (
     replay,
     run,
     simulate,
+    sweep,
 )
 from fgslam.cli.common import WORLD_HELP
 from fgslam.errors import OutputWarning, RunWarning, UserError
@@ -51,6 +52,7 @@ Typical use:
   fgslam export-reference run.log.gz --out ref.tum   truth/reference poses as TUM (for evo)
   fgslam emulate --speed 4 --link-dir /tmp/robot   emulated devices on pseudo-terminals
   fgslam online --laser PORT --sonar PORT --sonar PORT --odom PORT --out DIR   live SLAM
+  fgslam sweep grid.toml --out sweep/   many runs on Dask (resumable); --report sweep/
 
 Frames follow REP-103 (x forward, y left, yaw counter-clockwise); units are SI.
 """
@@ -70,6 +72,7 @@ OUTPUT_KINDS = {
     "evaluate": "file",
     "export-reference": "file",
     "calibrate": "file",
+    "sweep": "dir",
 }
 INPUT_OPTIONS = (
     "log",
@@ -81,6 +84,8 @@ INPUT_OPTIONS = (
     "map",
     "relations",
     "odometry_log",
+    "spec",
+    "report",
 )
 
 # The commands in the order `fgslam --help` lists them; each module's register(sub) adds its
@@ -100,6 +105,7 @@ COMMANDS = (
     replay,
     emulate,
     online,
+    sweep,
 )
 
 
