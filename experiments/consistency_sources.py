@@ -18,8 +18,9 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import hashlib
 import json
-from concurrent.futures import ProcessPoolExecutor
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -33,6 +34,7 @@ from fgslam.sim.sensors import SimParams
 from fgslam.sim.simulate import calibration_truth, events, plan_run
 from fgslam.sim.world import load_world
 from fgslam.slam.runner import run_backends
+from fgslam.sweep import sweep_function
 
 HERE = Path(__file__).resolve().parent
 NO_SCALE = {"laser_sys_per_metre": 0.0}
@@ -128,6 +130,18 @@ def summarise(rows: list[dict]) -> str:
     return "\n".join(out)
 
 
+def _cell_rows(opts: dict, settings: dict) -> list[dict]:
+    o = opts
+    return one(
+        settings["case"],
+        settings["seed"],
+        o["duration"],
+        o["sensors"],
+        o["backends"],
+        o["options"],
+    )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, default=3)
@@ -161,16 +175,28 @@ def main() -> None:
         "sonar": {"calibration": args.sonar_calibration},
         "frontend": {"corners": args.corners},
     }
-    jobs = [(c, s) for c in args.cases for s in range(args.seeds)]
-    rows: list[dict] = []
-    with ProcessPoolExecutor(max_workers=args.workers) as pool:
-        futures = [
-            pool.submit(one, c, s, args.duration, args.sensors, tuple(args.backends), options)
-            for c, s in jobs
-        ]
-        for k, (fut, (case, seed)) in enumerate(zip(futures, jobs, strict=True), 1):
-            rows.extend(fut.result())
-            print(f"{k}/{len(jobs)} runs done ({case}, seed {seed})", flush=True)
+    opts = {
+        "duration": args.duration,
+        "sensors": args.sensors,
+        "backends": tuple(args.backends),
+        "options": options,
+    }
+    key = hashlib.sha1(json.dumps(opts, sort_keys=True).encode()).hexdigest()[:8]
+
+    def progress(p: dict) -> None:
+        if "dashboard" not in p:
+            print(f"{p['done']}/{p['total']} runs done", flush=True)
+
+    per_cell = sweep_function(
+        partial(_cell_rows, opts),
+        {"case": list(args.cases), "seed": list(range(args.seeds))},
+        HERE / "out" / f"{Path(args.json).stem}-{key}",
+        workers=args.workers,
+        name=args.json,
+        extra=("case",),
+        progress=progress,
+    )
+    rows: list[dict] = [r for rs in per_cell for r in rs]
     (HERE / "out").mkdir(exist_ok=True)
     (HERE / "out" / args.json).write_text(json.dumps(rows))
     print(summarise(rows))

@@ -58,9 +58,7 @@ from fgslam.sim.simulate import calibration_truth
 from fgslam.sim.world import load_world
 from fgslam.slam.outputs import report_dict
 from fgslam.slam.runner import BACKENDS, SENSORS, run_backends
-from fgslam.sweep import run_sweep, spec_from_dict
-from fgslam.sweep.cell import FunctionCell, finished
-from fgslam.sweep.engine import cell_folder
+from fgslam.sweep import sweep_function
 
 HERE = Path(__file__).resolve().parent
 KEPT_TRACK = 0.5  # m of maximum position error
@@ -136,25 +134,16 @@ def sweep_seeds(opts: dict, seeds: int, workers: int, name: str) -> list[dict]:
     of the options>/, so that a run stopped and started again only runs the seeds missing."""
     key = hashlib.sha1(json.dumps(opts, sort_keys=True).encode()).hexdigest()[:8]
     out = HERE / "out" / f"{Path(name).stem}-{key}"
-    spec = spec_from_dict({"name": name, "grid": {"seed": list(range(seeds))}})
 
     def progress(p: dict) -> None:
         if "dashboard" not in p:
             print(f"{p['done']} of {p['total']} seeds done, {p['failed']} failed", flush=True)
 
-    run = run_sweep(
-        spec,
-        out,
-        workers=workers,
-        progress=progress,
-        cell_fn=FunctionCell(partial(_seed_rows, opts)),
+    fn = partial(_seed_rows, opts)
+    per_seed = sweep_function(
+        fn, {"seed": list(range(seeds))}, out, workers=workers, name=name, progress=progress
     )
-    if run.failed:
-        raise SystemExit(f"seeds failed: {run.failed}")
-    rows: list[dict] = []
-    for c in spec.cells:
-        rows.extend(finished(cell_folder(out, c.id))["result"])
-    return rows
+    return [row for rows in per_seed for row in rows]
 
 
 def _groups(rows: list[dict]):

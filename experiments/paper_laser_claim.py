@@ -22,7 +22,6 @@ import argparse
 import dataclasses
 import itertools
 import json
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import matplotlib
@@ -33,6 +32,7 @@ import numpy as np
 from paper_corridor import KEPT_TRACK, one_seed
 
 from fgslam.sim.sensors import SimParams
+from fgslam.sweep import sweep_function
 
 HERE = Path(__file__).resolve().parent
 SENSORS = ("laser", "fused")
@@ -137,6 +137,10 @@ def plot(rows: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
+def _cell_rows(settings: dict) -> list[dict]:
+    return job(settings["world"], settings["level"], settings["seed"])
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=4)
@@ -157,12 +161,25 @@ def main() -> None:
     args = ap.parse_args()
     path = HERE / "out" / args.json[0]
     if not args.replot:
-        jobs = list(itertools.product(args.worlds, args.levels, range(args.seeds)))
-        rows: list[dict] = []
-        with ProcessPoolExecutor(max_workers=args.workers) as pool:
-            for (w, lv, s), rs in zip(jobs, pool.map(job, *zip(*jobs, strict=True)), strict=True):
-                rows.extend(rs)
-                print(f"{w} x{lv:g} seed {s} done", flush=True)
+
+        def progress(p: dict) -> None:
+            if "dashboard" not in p:
+                print(f"{p['done']} of {p['total']} runs done", flush=True)
+
+        per_cell = sweep_function(
+            _cell_rows,
+            {
+                "world": list(args.worlds),
+                "level": list(args.levels),
+                "seed": list(range(args.seeds)),
+            },
+            HERE / "out" / Path(args.json[0]).stem,
+            workers=args.workers,
+            name=args.json[0],
+            extra=("level",),
+            progress=progress,
+        )
+        rows: list[dict] = [r for rs in per_cell for r in rs]
         path.parent.mkdir(exist_ok=True)
         path.write_text(json.dumps(rows))
     rows = [r for name in args.json for r in json.loads((HERE / "out" / name).read_text())]

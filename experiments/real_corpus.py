@@ -1,7 +1,11 @@
 """Every real log, run to the end as a new user would (issue 31, item 5).
 
 Run: python experiments/real_corpus.py [--data DIR] [--out DIR] [--logs NAME ...]
-       [--backends isam2 ekf] [--timeout S]
+       [--backends isam2 ekf] [--timeout S] [--workers 1]
+
+The (log, backend) runs are a sweep on a local Dask cluster (fgslam.sweep; one worker by
+default, so that the wall times are undisturbed): with ``--out``, a run stopped and started
+again runs only what is missing.
 
 Each log in the data folder (default ``../shared/data`` beside the project) goes through the
 command line exactly as a user types it, with default options: a ROS bag first through
@@ -24,7 +28,10 @@ import subprocess
 import sys
 import tempfile
 import time
+from functools import partial
 from pathlib import Path
+
+from fgslam.sweep import sweep_function
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
 OUTPUTS = ("trajectory.tum", "map.json", "report.json", "map.png")
@@ -105,6 +112,26 @@ def one_run(log: Path, run_log: Path, backend: str, sensors: str, out: Path, arg
     return row
 
 
+def _cell_row(opts: dict, settings: dict) -> dict:
+    """One (log, backend) cell of the sweep: the bag converted first (once; kept in the work
+    folder), then :func:`one_run`."""
+    log = Path(settings["log"])
+    work = Path(opts["work"])
+    args = argparse.Namespace(timeout=opts["timeout"])
+    run_log = log
+    if log.suffix == ".bag":  # a bag goes through convert first, as the issue says
+        run_log = work / (log.stem + ".log.gz")
+        if not run_log.exists():
+            rc, text, _ = fgslam("convert", str(log), "--out", str(run_log), timeout=args.timeout)
+            if rc != 0:
+                return {"log": log.name, "backend": "convert", "exit": rc, "wall": 0.0,
+                        "warnings": warnings_of(text), "outputs": False, "partial": False,
+                        "scans": None, "skipped": {}, "duration": None}  # fmt: skip
+    backend = settings["backend"]
+    out = work / f"{log.name}.{backend}.laser"
+    return one_run(log, run_log, backend, "laser", out, args)
+
+
 def table(rows: list[dict]) -> str:
     head = (
         "| log | backend | scans placed | records skipped | finished | wall s | x real time "
@@ -139,27 +166,27 @@ def main() -> None:
     ap.add_argument("--logs", nargs="*", help="only logs whose file name contains one of these")
     ap.add_argument("--backends", nargs="*", default=["isam2", "ekf"])
     ap.add_argument("--timeout", type=float, default=3600.0, help="s per command")
+    ap.add_argument(
+        "--workers", type=int, default=1, help="Dask workers (1: the wall times undisturbed)"
+    )
     args = ap.parse_args()
     work = args.out or Path(tempfile.mkdtemp(prefix="fgslam-corpus-"))
     work.mkdir(parents=True, exist_ok=True)
-    rows = []
-    for log in logs(args.data, args.logs):
-        run_log = log
-        if log.suffix == ".bag":  # a bag goes through convert first, as the issue says
-            run_log = work / (log.stem + ".log.gz")
-            rc, text, _ = fgslam("convert", str(log), "--out", str(run_log), timeout=args.timeout)
-            if rc != 0:
-                rows.append(
-                    {"log": log.name, "backend": "convert", "exit": rc, "wall": 0.0,
-                     "warnings": warnings_of(text), "outputs": False, "partial": False,
-                     "scans": None, "skipped": {}, "duration": None}
-                )  # fmt: skip
-                continue
-        for backend in args.backends:
-            out = work / f"{log.name}.{backend}.laser"
-            row = one_run(log, run_log, backend, "laser", out, args)
-            rows.append(row)
-            print(table([row]).splitlines()[-1], file=sys.stderr, flush=True)
+    found = logs(args.data, args.logs)
+
+    def progress(p: dict) -> None:
+        if "dashboard" not in p:
+            print(f"{p['done']} of {p['total']} runs done", file=sys.stderr, flush=True)
+
+    opts = {"timeout": args.timeout, "work": str(work)}
+    rows = sweep_function(
+        partial(_cell_row, opts),
+        {"log": [str(p) for p in found], "backend": list(args.backends)},
+        work / "sweep",
+        workers=args.workers,
+        name="real corpus",
+        progress=progress,
+    )
     print(table(rows))
     print(f"\n(outputs in {work})")
 

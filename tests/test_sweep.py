@@ -249,3 +249,29 @@ def test_a_sweep_on_an_existing_scheduler(tmp_path):
         run_sweep(
             spec_from_dict({"run": {"seed": 9}}), tmp_path / "x", scheduler="tcp://127.0.0.1:9"
         )
+
+
+def _square(settings):
+    with _lock:
+        _calls.append(f"{settings['case']}{settings['seed']}")
+    return {"case": settings["case"], "value": settings["seed"] ** 2}
+
+
+def test_an_experiments_own_sweep_keeps_the_grids_order_and_resumes(tmp_path):
+    """sweep_function (the experiments' loops over seeds): an experiment's own setting
+    (``case``) beside the seed, the results in the grid's order, and a second call runs
+    nothing."""
+    from fgslam.sweep import sweep_function
+
+    grid = {"case": ["b", "a"], "seed": [3, 1, 2]}
+    _calls.clear()
+    got = sweep_function(_square, grid, tmp_path, workers=2, extra=("case",), processes=False)
+    assert [(g["case"], g["value"]) for g in got] == [
+        ("b", 9), ("b", 1), ("b", 4), ("a", 9), ("a", 1), ("a", 4)
+    ]  # fmt: skip
+    assert sorted(_calls) == sorted(["b3", "b1", "b2", "a3", "a1", "a2"])
+    _calls.clear()
+    assert sweep_function(_square, grid, tmp_path, extra=("case",), processes=False) == got
+    assert _calls == []
+    with pytest.raises(SweepError, match="unknown setting"):
+        sweep_function(_square, grid, tmp_path, processes=False)  # "case" not declared

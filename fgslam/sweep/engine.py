@@ -198,3 +198,35 @@ def _write_failed(out: Path, failed: dict[str, str]) -> None:
     tmp = out / ".failed.json.tmp"
     tmp.write_text(json.dumps(failed, indent=1))
     os.replace(tmp, path)
+
+
+def sweep_function(
+    fn: Callable[[dict[str, Any]], Any],
+    grid: dict[str, list],
+    out: str | Path,
+    *,
+    workers: int | None = None,
+    name: str = "",
+    extra: tuple[str, ...] = (),
+    progress: Callable[[dict[str, Any]], None] | None = None,
+    processes: bool = True,
+) -> list[Any]:
+    """An experiment's sweep: ``fn(settings)`` (a JSON-able result) for every combination
+    of ``grid`` (settings as in a specification, ``extra`` names its own), as cells under
+    ``out`` on a local cluster (resumable: :class:`fgslam.sweep.cell.FunctionCell`); returns
+    the results in the grid's order. :class:`SweepError` when a cell failed."""
+    from fgslam.sweep.cell import FunctionCell
+    from fgslam.sweep.spec import spec_from_dict
+
+    spec = spec_from_dict({"name": name or "sweep", "grid": grid}, extra=extra)
+    run = run_sweep(
+        spec,
+        out,
+        workers=workers,
+        progress=progress,
+        cell_fn=FunctionCell(fn),
+        processes=processes,
+    )
+    if run.failed:
+        raise SweepError(f"{len(run.failed)} cells failed: {run.failed}")
+    return [finished(cell_folder(out, c.id))["result"] for c in spec.cells]

@@ -80,7 +80,7 @@ class Cell:
         """The configuration keys as sections ({"scanmatch": {"odometry": "both"}})."""
         out: dict[str, dict[str, Any]] = {}
         for k, v in self.settings.items():
-            if k not in RUN_KEYS:
+            if k not in RUN_KEYS and "." in k:
                 section, _, key = k.partition(".")
                 out.setdefault(section, {})[key] = v
         return out
@@ -112,8 +112,11 @@ def load_spec(path: str | Path) -> SweepSpec:
         raise SweepError(f"{path}: {e}") from None
 
 
-def spec_from_dict(data: dict[str, Any], source: Path | None = None) -> SweepSpec:
-    """A :class:`SweepSpec` from the TOML's content (module doc)."""
+def spec_from_dict(
+    data: dict[str, Any], source: Path | None = None, extra: tuple[str, ...] = ()
+) -> SweepSpec:
+    """A :class:`SweepSpec` from the TOML's content (module doc); ``extra``: more setting
+    names, taken as they are (an experiment's own cell function reads them)."""
     unknown = set(data) - {"name", "run", "grid", "cells"}
     if unknown:
         raise SweepError(f"unknown top-level keys {sorted(unknown)} (name, run, grid, cells)")
@@ -133,7 +136,7 @@ def spec_from_dict(data: dict[str, Any], source: Path | None = None) -> SweepSpe
         combos = [{}]
     rows = [{**run, **g} for g in combos] if grid or not listed else []
     rows += [{**run, **c} for c in listed]
-    cells = [_cell({**DEFAULTS, **r}, varying) for r in rows]
+    cells = [_cell({**DEFAULTS, **r}, varying, extra) for r in rows]
     ids = [c.id for c in cells]
     if len(set(ids)) != len(ids):
         dup = sorted({i for i in ids if ids.count(i) > 1})
@@ -142,8 +145,10 @@ def spec_from_dict(data: dict[str, Any], source: Path | None = None) -> SweepSpe
     return SweepSpec(str(name), cells, source, varying)
 
 
-def _cell(s: dict[str, Any], varying: tuple[str, ...]) -> Cell:
+def _cell(s: dict[str, Any], varying: tuple[str, ...], extra: tuple[str, ...] = ()) -> Cell:
     for k, v in s.items():
+        if k in extra:
+            continue
         if k in RUN_KEYS:
             want = RUN_KEYS[k]
             if isinstance(v, bool) or not isinstance(v, want):
