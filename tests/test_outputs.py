@@ -203,3 +203,27 @@ def test_partial_result_without_a_single_pose_is_written(tmp_path):
     assert rep["partial"]["error"] == "boom" and rep["poses"] == 0
     assert (tmp_path / "map.png").stat().st_size > 0
     assert (tmp_path / "trajectory.tum").read_text() == ""
+
+
+def test_report_states_the_scale_aligned_nees_beside_the_raw():
+    """A map right but for its absolute scale (1 % too large about the start) with tight
+    covariances: the raw NEES is far over its 3 dof, the scale-aligned one is zero (the
+    estimate is the truth once scaled), the scale error -1/101; the demo's table shows both
+    and its overconfidence flag names the aligned value."""
+    from fgslam.slam.outputs import report_dict
+
+    t = np.linspace(0.0, 60.0, 61)
+    truth = np.column_stack([np.cos(t / 10) * 5, np.sin(t / 10) * 3, t / 10])
+    est = truth.copy()
+    est[:, :2] = truth[0, :2] + 1.01 * (truth[:, :2] - truth[0, :2])
+    res = _fake(t, est)
+    res.truth = truth
+    res.covs = [np.diag([1e-4, 1e-4, 1e-4])] * len(t)
+    rep = report_dict(res)
+    assert rep["nees"]["mean"] > 30  # (3 dof)
+    aligned = rep["nees_scale_aligned"]
+    assert aligned["mean"] == pytest.approx(0.0, abs=1e-9)
+    assert aligned["scale_error"] == pytest.approx(1 / 1.01 - 1, rel=1e-9)
+    table = markdown_table([{**rep, "landmarks": {}}])
+    assert "NEES scale-aligned" in table and "| 0.0 |" in table
+    assert "with the map's absolute scale taken out" in table and "laser) 0.0" in table

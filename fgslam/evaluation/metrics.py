@@ -165,13 +165,17 @@ def scale_about_start(est: ArrayLike, ref: ArrayLike) -> tuple[NDArray[np.float6
     """The estimate's positions scaled about its first one (anchored) by the least-squares
     factor k that best takes them onto the reference's (headings kept), and k. What remains
     once a map's absolute scale, which wheels and range sensors with unknown scale errors
-    cannot tell, is taken out (m, rad)."""
+    cannot tell, is taken out (m, rad). EvaluationError where it overflows or a pose is
+    not finite."""
     est = np.array(est, dtype=float)
     ref = np.asarray(ref, dtype=float)
-    p, q = est[:, :2] - est[0, :2], ref[:, :2] - ref[0, :2]
-    pp = float(np.sum(p * p))
-    k = float(np.sum(p * q) / pp) if pp > 0 else 1.0
-    est[:, :2] = est[0, :2] + k * p
+    with np.errstate(over="ignore", invalid="ignore"):
+        p, q = est[:, :2] - est[0, :2], ref[:, :2] - ref[0, :2]
+        pp = float(np.sum(p * p))
+        k = float(np.sum(p * q) / pp) if pp > 0 else 1.0
+        est[:, :2] = est[0, :2] + k * p
+    if not (math.isfinite(k) and np.isfinite(est).all()):
+        raise EvaluationError("the scale alignment overflows or meets non-finite poses")
     return est, k
 
 

@@ -229,9 +229,10 @@ def reference_metrics(res: SlamResult, true_map: dict[str, Any] | None = None) -
     the final estimate ("ate"), of the online one ("ate_online") and of odometry alone
     ("ate_odometry"), each over its own poses within the reference's time span (the
     reference interpolated at their times; SE(2)-aligned), the unaligned error of the last
-    such pose ("final_pose_error"), the NEES of those poses and the map error. A metric that
-    cannot be computed (fewer than 2 poses within the reference: no alignment; non-finite
-    poses) is left out, its reason under ``not_evaluated``."""
+    such pose ("final_pose_error"), the NEES of those poses, raw and with the map's absolute
+    scale taken out ("nees_scale_aligned", with the scale error k - 1), and the map error. A
+    metric that cannot be computed (fewer than 2 poses within the reference: no alignment;
+    non-finite poses) is left out, its reason under ``not_evaluated``."""
     out: dict[str, Any] = {}
     tracks = res.tracks()
     for key, track in (("ate", "estimate"), ("ate_online", "online"), ("ate_odometry", "odometry")):
@@ -263,6 +264,14 @@ def reference_metrics(res: SlamResult, true_map: dict[str, Any] | None = None) -
         evaluation.add_metric(
             out, "nees", lambda: evaluation.nees(res.poses[idx], np.array(covs), ref)
         )
+
+        def scale_aligned() -> dict[str, float]:
+            # the map's absolute scale taken out (docs/design.md, 6: odometry and laser with
+            # unknown scale errors cannot observe it); k - 1 is the scale error
+            scaled, k = evaluation.scale_about_start(res.poses[idx], ref)
+            return {**evaluation.nees(scaled, np.array(covs), ref), "scale_error": k - 1.0}
+
+        evaluation.add_metric(out, "nees_scale_aligned", scale_aligned)
     if true_map:
         out["map_error"] = map_error(res, true_map)
     return out
