@@ -18,6 +18,7 @@ pose in the frame of the last keyframe.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 from collections import Counter, deque
 from dataclasses import dataclass
@@ -264,10 +265,9 @@ class FusedMotion:
         scan = step.scan
         if not step.keyframe and m is not None and m.ok:
             scan = relative_pose(m.pose, m.cov)
-        n = sum(1 for s in self._samples if s[0] <= t)
-        ts = [s[0] for s in list(self._samples)[:n]]
-        lr = [s[1] for s in list(self._samples)[:n]]
-        ll = [s[2] for s in list(self._samples)[:n]]
+        due = list(itertools.takewhile(lambda s: s[0] <= t, self._samples))
+        n = len(due)
+        ts, lr, ll = (list(c) for c in zip(*due, strict=True)) if due else ([], [], [])
         if self._kf_t is None:  # the first scan
             rel = np.zeros(3)
         else:

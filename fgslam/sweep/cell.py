@@ -36,6 +36,10 @@ def run_cell(settings: dict[str, Any], folder: str, name: str = "") -> dict[str,
     """Run the cell of ``settings`` (:class:`fgslam.sweep.spec.Cell`) into ``folder``, unless
     it is finished already; returns its result (``result.json``'s content). Raises what the
     run raises (the sweep reports the cell failed); nothing is left in ``folder`` then."""
+    return in_cell(folder, lambda tmp: _run(settings, tmp, name))
+
+
+def _run(settings: dict[str, Any], tmp: Path, name: str) -> dict[str, Any]:
     from fgslam.config import load_config, with_options
     from fgslam.io.formats import open_log
     from fgslam.sim import simulate_to_log
@@ -44,89 +48,77 @@ def run_cell(settings: dict[str, Any], folder: str, name: str = "") -> dict[str,
     from fgslam.slam.runner import run_slam
     from fgslam.sweep.spec import Cell
 
-    folder_p = Path(folder)
-    done = finished(folder_p)
+    t0 = time.perf_counter()
+    world = None
+    if "log" in settings:
+        reader = open_log(settings["log"])
+    else:
+        world = load_world(settings["world"])
+        sim = tmp / "simulated.log.gz"
+        simulate_to_log(world, load_config(None), sim, settings["seed"], settings.get("duration"))
+        reader = open_log(sim)
+    cfg = with_options(reader.config, Cell(settings).overrides())
+    res = run_slam(
+        reader, cfg, settings["backend"], settings["sensors"],
+        association=settings.get("association"),
+    )  # fmt: skip
+    rep = write_outputs(
+        res,
+        tmp,
+        reader.meta.get("true_map"),
+        world=world if settings.get("world") in BUILTIN_WORLDS else None,
+        cfg=cfg,
+    )
+    if "seed" in settings:
+        (tmp / "simulated.log.gz").unlink(missing_ok=True)
+    return {
+        "cell": name,
+        "settings": settings,
+        "metrics": metrics(rep, res, settings),
+        "wall_s": round(time.perf_counter() - t0, 3),
+        "host": os.uname().nodename,
+    }
+
+
+def in_cell(folder: str | Path, work) -> dict[str, Any]:
+    """A cell's protocol: ``folder``'s result if it is finished; else ``work(tmp)`` (its
+    outputs into ``tmp``, a new folder beside ``folder``; returns the result), the result
+    written as ``tmp``'s result.json and ``tmp`` renamed to ``folder`` (whatever an earlier,
+    unfinished attempt left there removed first). On an error nothing is left."""
+    folder = Path(folder)
+    done = finished(folder)
     if done is not None:
         return done
-    cell = Cell(settings)
-    tmp = folder_p.parent / f".{folder_p.name}.running-{uuid.uuid4().hex[:8]}"
+    tmp = folder.parent / f".{folder.name}.running-{uuid.uuid4().hex[:8]}"
     tmp.mkdir(parents=True)
     try:
-        t0 = time.perf_counter()
-        world = None
-        if "log" in settings:
-            reader = open_log(settings["log"])
-        else:
-            world = load_world(settings["world"])
-            sim = tmp / "simulated.log.gz"
-            simulate_to_log(
-                world, load_config(None), sim, settings["seed"], settings.get("duration")
-            )
-            reader = open_log(sim)
-        cfg = with_options(reader.config, cell.overrides())
-        res = run_slam(
-            reader,
-            cfg,
-            settings["backend"],
-            settings["sensors"],
-            association=settings.get("association"),
-        )
-        rep = write_outputs(
-            res,
-            tmp,
-            reader.meta.get("true_map"),
-            world=world if settings.get("world") in BUILTIN_WORLDS else None,
-            cfg=cfg,
-        )
-        if "seed" in settings:
-            (tmp / "simulated.log.gz").unlink(missing_ok=True)
-        result = {
-            "cell": name,
-            "settings": settings,
-            "metrics": metrics(rep, res, settings),
-            "wall_s": round(time.perf_counter() - t0, 3),
-            "host": os.uname().nodename,
-        }
-        return commit(tmp, folder_p, result)
+        result = work(tmp)
+        (tmp / RESULT).write_text(json.dumps(result, indent=1, default=_json_default))
+        if folder.exists():  # a failed attempt's leftovers (never a finished cell)
+            shutil.rmtree(folder)
+        os.replace(tmp, folder)
+        return result
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
 
 
-def commit(tmp: Path, folder: Path, result: dict[str, Any]) -> dict[str, Any]:
-    """Finish a cell: ``result`` written as ``tmp``'s result.json, then ``tmp`` renamed to
-    ``folder`` (whatever an earlier, unfinished attempt left there removed first)."""
-    (tmp / RESULT).write_text(json.dumps(result, indent=1, default=_json_default))
-    if folder.exists():  # a failed attempt's leftovers (never a finished cell)
-        shutil.rmtree(folder)
-    os.replace(tmp, folder)
-    return result
-
-
 class FunctionCell:
     """A cell function (for :func:`fgslam.sweep.run_sweep`'s ``cell_fn``) of ``fn``, which
     maps a cell's settings to a JSON-able result (an experiment's own run): the result is
-    the cell's ``result.json``, written as :func:`run_cell` writes it."""
+    kept in the cell's ``result.json`` (:func:`in_cell`)."""
 
     def __init__(self, fn) -> None:
         self.fn = fn
 
     def __call__(self, settings: dict[str, Any], folder: str, name: str = "") -> dict[str, Any]:
-        folder_p = Path(folder)
-        done = finished(folder_p)
-        if done is not None:
-            return done
-        t0 = time.perf_counter()
-        out = self.fn(settings)
-        tmp = folder_p.parent / f".{folder_p.name}.running-{uuid.uuid4().hex[:8]}"
-        tmp.mkdir(parents=True)
-        try:
-            result = {"cell": name, "settings": settings, "result": out}
-            result["wall_s"] = round(time.perf_counter() - t0, 3)
-            return commit(tmp, folder_p, result)
-        except BaseException:
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise
+        def work(_tmp: Path) -> dict[str, Any]:
+            t0 = time.perf_counter()
+            out = self.fn(settings)
+            return {"cell": name, "settings": settings, "result": out,
+                    "wall_s": round(time.perf_counter() - t0, 3)}  # fmt: skip
+
+        return in_cell(folder, work)
 
 
 def metrics(rep: dict[str, Any], res, settings: dict[str, Any]) -> dict[str, float | None]:

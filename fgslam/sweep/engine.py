@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from fgslam.io import safeio
 from fgslam.sweep.cell import finished, run_cell
 from fgslam.sweep.spec import SweepError, SweepSpec
 
@@ -185,9 +186,7 @@ def _write_index(spec: SweepSpec, out: Path) -> None:
         "varying": list(spec.varying),
         "cells": [{"id": c.id, "settings": c.settings} for c in spec.cells],
     }
-    tmp = out / ".sweep.json.tmp"
-    tmp.write_text(json.dumps(index, indent=1))
-    os.replace(tmp, out / "sweep.json")
+    safeio.write_text(out / "sweep.json", json.dumps(index, indent=1))
 
 
 def _write_failed(out: Path, failed: dict[str, str]) -> None:
@@ -195,9 +194,7 @@ def _write_failed(out: Path, failed: dict[str, str]) -> None:
     if not failed:
         path.unlink(missing_ok=True)
         return
-    tmp = out / ".failed.json.tmp"
-    tmp.write_text(json.dumps(failed, indent=1))
-    os.replace(tmp, path)
+    safeio.write_text(path, json.dumps(failed, indent=1))
 
 
 def sweep_function(

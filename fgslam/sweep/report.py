@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from fgslam.io import safeio
 from fgslam.sweep.cell import finished
 from fgslam.sweep.engine import cell_folder
 from fgslam.sweep.spec import SweepError
@@ -95,7 +96,7 @@ def write_report(out: str | Path, to: str | Path | None = None) -> dict[str, Any
         )
     _write_csv(to / "cells.csv", cells)
     _write_csv(to / "summary.csv", rows)
-    (to / "summary.md").write_text(markdown(index, rows))
+    safeio.write_text(to / "summary.md", markdown(index, rows))
     boxplots(index, results, to / "boxplots.png")
     return {"cells": len(results), "settings": len(rows), "folder": str(to)}
 
@@ -151,7 +152,8 @@ def boxplots(index: dict[str, Any], results: list[dict[str, Any]], path: Path) -
     buf = io.BytesIO()
     fig.savefig(buf, dpi=110)
     plt.close(fig)
-    path.write_bytes(buf.getvalue())
+    with safeio.atomic_path(path) as tmp:
+        tmp.write_bytes(buf.getvalue())
 
 
 def _write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
@@ -163,4 +165,4 @@ def _write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
     w.writeheader()
     for r in rows:
         w.writerow(r)
-    path.write_text(buf.getvalue())
+    safeio.write_text(path, buf.getvalue())
