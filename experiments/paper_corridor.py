@@ -51,10 +51,9 @@ from fgslam.choices import (
 from fgslam.config import load_config, with_options
 from fgslam.evaluation import metrics as evaluation
 from fgslam.io.logfile import LogReader
-from fgslam.sim import simulate_to_log
+from fgslam.sim import simulate_to_log, true_calibration
 from fgslam.sim.scenes import PAPER
 from fgslam.sim.sensors import SimParams
-from fgslam.sim.simulate import calibration_truth
 from fgslam.sim.world import load_world
 from fgslam.slam.outputs import report_dict
 from fgslam.slam.runner import BACKENDS, SENSORS, run_backends
@@ -101,24 +100,17 @@ def one_seed(
                 "sonar": {"timing": sonar_timing, "calibration": sonar_calibration},
             },
         )
-        truth = calibration_truth(seed, SimParams(**reader.meta["sim_params"]))
+        truth = true_calibration(reader.meta)
         for sensors in sensors_list:
             for res in run_backends(
                 LogReader(log), cfg, list(BACKENDS), sensors, association=association
             ):
-                rep = report_dict(res, true_map)
+                rep = report_dict(res, true_map, truth)
                 rep["seed"] = seed
                 rep["association"] = association
                 rep["mode"] = mode
-                if "calibration" in rep:
-                    names = rep["calibration"]["parameters"]
-                    rep["calibration"]["truth"] = [truth[n] for n in names]
                 ref = evaluation.interpolate_poses(res.truth_t, res.truth, res.times)
                 err = evaluation.position_errors(res.poses, ref, align=False)
-                if "nees" in rep:  # and with the map's absolute scale taken out
-                    scaled, k = evaluation.scale_about_start(res.poses, ref)
-                    rep["scale_error"] = k - 1.0
-                    rep["nees_scale_aligned"] = evaluation.nees(scaled, np.array(res.covs), ref)
                 rep["error_curve"] = [res.times.tolist()[::10], err.tolist()[::10]]
                 rows.append(rep)
         return rows
@@ -214,7 +206,7 @@ def summarise(rows: list[dict]) -> str:
             "|---|---|---|---|---|",
         ]
         for sensors, backend, rs in _groups(aligned):
-            sc = 1e3 * np.array([r["scale_error"] for r in rs])
+            sc = 1e3 * np.array([r["nees_scale_aligned"]["scale_error"] for r in rs])
             ne = [r["nees_scale_aligned"]["mean"] for r in rs]
             band = [r["nees_scale_aligned"]["within_95"] for r in rs]
             out.append(

@@ -113,6 +113,11 @@ def test_run_calibration_option(short_log, tmp_path, capsys):
     assert all(s < 0.01 for s in sig[:2]) and all(s <= 0.01 for s in sig)
     for e, s, truth in zip(est, sig, (0.006, 0.005, 0.005), strict=True):
         assert abs(e - truth) < 3 * s, (est, sig)
+    # the simulated log's truth beside them (the simulator's defaults), and the error in sigmas
+    assert cal["truth"] == pytest.approx([0.006, 0.005, 0.005, 0.008])
+    assert cal["error_sigmas"][:3] == pytest.approx(
+        [(e - t) / s for e, t, s in zip(est, (0.006, 0.005, 0.005), sig, strict=True)]
+    )
     assert "calibration" not in json.loads((plain / "report.json").read_text())
     capsys.readouterr()
     with pytest.raises(SystemExit):

@@ -227,3 +227,37 @@ def test_report_states_the_scale_aligned_nees_beside_the_raw():
     table = markdown_table([{**rep, "landmarks": {}}])
     assert "NEES scale-aligned" in table and "| 0.0 |" in table
     assert "with the map's absolute scale taken out" in table and "laser) 0.0" in table
+
+
+def test_calibration_against_the_simulated_truth(tmp_path):
+    """A simulated log's header gives its true calibration (the simulator's parameters and the
+    seed's speed-of-sound draw); a log that is not simulated, or whose parameters are another
+    simulator's, gives none. report.json's calibration states the truth and the error in
+    sigmas, the comparison's table shows both (1e-3) and a truth row."""
+    from fgslam.sim import true_calibration
+    from fgslam.sim.sensors import SimParams
+    from fgslam.sim.simulate import sound_speed_bias
+    from fgslam.slam.outputs import calibration_against_truth
+
+    meta = {"seed": 3, "sim_params": dataclasses.asdict(SimParams(wheelbase_error=-0.002))}
+    truth = true_calibration(meta)
+    assert truth["e_b"] == -0.002 and truth["laser_offset"] == 0.008
+    assert truth["sound"] == sound_speed_bias(3) != sound_speed_bias(4)
+    bad_meta = [{}, {"seed": 3}, {"seed": "3", "sim_params": {}}, {"seed": True, "sim_params": {}}]
+    bad_meta += [{"seed": 3, "sim_params": {"warp_drive": 1.0}}, {"seed": 3, "sim_params": []}]
+    bad_meta += [{"seed": 3, "sim_params": {"wheelbase_error": v}} for v in ("x", math.inf, None)]
+    for bad in bad_meta:
+        assert true_calibration(bad) is None, bad
+    cal = {"parameters": ["e_r", "e_b", "glue"], "estimate": [0.007, -0.001, 0.1],
+           "sigma": [0.0005, 0.002, 0.01]}  # fmt: skip
+    out = calibration_against_truth(cal, truth)
+    assert out["truth"] == [0.006, -0.002, None]
+    assert out["error_sigmas"] == pytest.approx([2.0, 0.5, None])
+    assert calibration_against_truth(cal, None) == cal
+    table = markdown_table([{**_row("isam2"), "calibration": out}])
+    assert "| e_r | e_b | glue |" in table
+    assert (
+        "| isam2 | fused | 7.00 +- 0.50 (+2.0) | -1.00 +- 2.00 (+0.5) | 100.00 +- 10.00 |" in table
+    )
+    assert "| truth | | 6.00 | -2.00 | - |" in table
+    assert "Calibration" not in markdown_table([_row("isam2")])

@@ -71,6 +71,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from fgslam.config import with_options
     from fgslam.io.formats import open_log
+    from fgslam.sim import true_calibration
     from fgslam.slam.outputs import write_outputs
     from fgslam.slam.runner import run_slam
 
@@ -116,6 +117,7 @@ def run(args: argparse.Namespace) -> int:
         res,
         args.out,
         reader.meta.get("true_map"),
+        true_calibration=true_calibration(reader.meta),
         extra=extra,
         world=_log_world(reader),
         scans=tap.sample.scans,

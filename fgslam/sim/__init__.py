@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable
 from pathlib import Path
 
 from fgslam.config import RobotConfig
 from fgslam.io.logwriter import LogWriter
 from fgslam.sim.sensors import SimParams
-from fgslam.sim.simulate import Run, events, plan_run, sound_speed_bias
+from fgslam.sim.simulate import Run, calibration_truth, events, plan_run, sound_speed_bias
 from fgslam.sim.world import World
 
 SIMULATOR_VERSION = 1
@@ -43,3 +44,19 @@ def simulate_to_log(
             if progress is not None:
                 progress(ev.t, run.duration)
     return run
+
+
+def true_calibration(meta: dict) -> dict[str, float] | None:
+    """The true calibration errors of a simulated log (by the names of
+    :class:`fgslam.slam.calibration.Calibration`) from its header's ``meta``: the seed and the
+    simulator's parameters; None for a log that is not simulated, or whose parameters this
+    simulator does not know."""
+    seed, params = meta.get("seed"), meta.get("sim_params")
+    if not isinstance(seed, int) or isinstance(seed, bool) or not isinstance(params, dict):
+        return None
+    try:
+        truth = calibration_truth(seed, SimParams(**params))
+    except (TypeError, ValueError, ArithmeticError):  # another simulator's parameters
+        return None
+    ok = all(isinstance(v, float | int) and math.isfinite(v) for v in truth.values())
+    return truth if ok else None

@@ -85,6 +85,7 @@ def compare(
     ``association`` "jcbb" or "nn" for every run; ``sections`` overrides keys of the
     configuration's sections (``{"scanmatch": {...}, "odometry": {...}}``, the command
     line's options). Returns the rows of the comparison."""
+    from fgslam.sim import true_calibration
     from fgslam.sim.world import BUILTIN_WORLDS, load_world
 
     out = Path(out)
@@ -124,6 +125,7 @@ def compare(
             res,
             out / f"{res.backend}-{res.sensors}",
             true_map,
+            true_calibration=true_calibration(reader.meta),
             extra={"truth_source": truth_kind} if res.has_truth else None,
             world=world,
             scans=info.get("scans"),
@@ -287,6 +289,7 @@ def markdown_table(rows: list[dict[str, Any]]) -> str:
     )
     if flags:
         tail += "\n(!) NEES far from its degrees of freedom:\n\n" + "\n".join(flags) + "\n"
+    tail += calibration_table(rows)
     for r in rows:
         part = r.get("partial")
         if part:
@@ -297,6 +300,43 @@ def markdown_table(rows: list[dict[str, Any]]) -> str:
         for e in r.get("output_errors", []):
             tail += f"\n{r['backend']}/{r['sensors']}: {e['output']} not written: {e['error']}\n"
     return head + "\n".join(lines) + "\n" + tail
+
+
+def calibration_table(rows: list[dict[str, Any]]) -> str:
+    """The runs' calibration estimates as a markdown table, in units of 1e-3 (relative errors;
+    the laser's range offset in mm): estimate +- sigma and, where the truth is known (a
+    simulated log), (estimate - truth) / sigma; a last row with the truth. Empty when no run
+    estimated a calibration."""
+    cal = [r for r in rows if r.get("calibration")]
+    if not cal:
+        return ""
+    names: list[str] = []
+    for r in cal:
+        names += [n for n in r["calibration"]["parameters"] if n not in names]
+    out = (
+        "\nCalibration estimated (1e-3; laser offset in mm): estimate +- sigma "
+        "(error / sigma against the truth)\n\n"
+        f"| backend | sensors | {' | '.join(names)} |\n|---|---|{'---|' * len(names)}\n"
+    )
+    truth: dict[str, float] = {}
+    for r in cal:
+        c = r["calibration"]
+        cells = dict.fromkeys(names, "-")
+        sig = c.get("sigma") or [None] * len(c["parameters"])
+        z = c.get("error_sigmas") or [None] * len(c["parameters"])
+        for n, e, s_, z_, t in zip(
+            c["parameters"], c["estimate"], sig, z, c.get("truth") or [None] * len(sig),
+            strict=True,
+        ):  # fmt: skip
+            cell = f"{1e3 * e:.2f}" + (f" +- {1e3 * s_:.2f}" if s_ is not None else "")
+            cells[n] = cell + (f" ({z_:+.1f})" if z_ is not None else "")
+            if t is not None:
+                truth[n] = t
+        out += f"| {r['backend']} | {r['sensors']} | {' | '.join(cells.values())} |\n"
+    if truth:
+        row = " | ".join(f"{1e3 * truth[n]:.2f}" if n in truth else "-" for n in names)
+        out += f"| truth | | {row} |\n"
+    return out
 
 
 def _errors_over_time(res: SlamResult, track: str) -> tuple[np.ndarray, np.ndarray]:

@@ -171,10 +171,15 @@ def map_error(res: SlamResult, true_map: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def report_dict(res: SlamResult, true_map: dict[str, Any] | None = None) -> dict[str, Any]:
-    """report.json: counts, timing, statistics and, against the log's reference poses, the
-    metrics of :func:`reference_metrics` (those that cannot be computed, and why, under
-    ``not_evaluated``)."""
+def report_dict(
+    res: SlamResult,
+    true_map: dict[str, Any] | None = None,
+    true_calibration: dict[str, float] | None = None,
+) -> dict[str, Any]:
+    """report.json: counts, timing, statistics, the calibration estimates (against
+    ``true_calibration``, a simulated log's, when given: :func:`calibration_against_truth`)
+    and, against the log's reference poses, the metrics of :func:`reference_metrics` (those
+    that cannot be computed, and why, under ``not_evaluated``)."""
     lat = np.array(res.latencies) * 1000 if res.latencies else np.zeros(1)
     kinds: dict[str, int] = {}
     for lm in res.landmarks.values():
@@ -211,7 +216,7 @@ def report_dict(res: SlamResult, true_map: dict[str, Any] | None = None) -> dict
                 res.loop_closures, res.times, res.truth_t, res.truth
             )
     if res.calibration is not None:
-        rep["calibration"] = dict(res.calibration)
+        rep["calibration"] = calibration_against_truth(res.calibration, true_calibration)
     if res.stats.get("partial"):
         rep["partial"] = dict(res.stats["partial"])
     if res.has_truth:
@@ -222,6 +227,27 @@ def report_dict(res: SlamResult, true_map: dict[str, Any] | None = None) -> dict
             "reference trajectory): at least 2 are needed"
         }
     return rep
+
+
+def calibration_against_truth(
+    cal: dict[str, Any], truth: dict[str, float] | None
+) -> dict[str, Any]:
+    """report.json's ``calibration``: the estimates (``parameters``, ``estimate``, ``sigma``:
+    relative errors; the laser's range offset in m, its scale per m) and, with the true
+    values by name (a simulated log's), ``truth`` and ``error_sigmas`` ((estimate - truth) /
+    sigma per parameter; null where there is no truth or sigma)."""
+    out = dict(cal)
+    if not truth:
+        return out
+    names, est, sig = cal["parameters"], cal["estimate"], cal.get("sigma")
+    out["truth"] = [truth.get(n) for n in names]
+    z = []
+    for i, (e, t) in enumerate(zip(est, out["truth"], strict=True)):
+        s = sig[i] if sig else None
+        ok = t is not None and s is not None and s > 0 and math.isfinite(e - t)
+        z.append(float((e - t) / s) if ok else None)
+    out["error_sigmas"] = z
+    return out
 
 
 def reference_metrics(res: SlamResult, true_map: dict[str, Any] | None = None) -> dict[str, Any]:
@@ -490,6 +516,7 @@ def write_outputs(
     out: str | Path,
     true_map: dict[str, Any] | None = None,
     *,
+    true_calibration: dict[str, float] | None = None,
     extra: dict[str, Any] | None = None,
     world: Any = None,
     scans: list[tuple[float, np.ndarray]] | None = None,
@@ -502,6 +529,7 @@ def write_outputs(
     ``output_errors``, and the others are still written; see :class:`OutputGuard`); returns
     the report.
 
+    ``true_map``, ``true_calibration``: a simulated log's truth (:func:`report_dict`);
     ``extra``: more keys for report.json (what the reader found, ...); ``world``: the
     simulator's world, drawn as an outline; ``scans`` (time, ranges) with ``cfg``: laser scans
     drawn in map.png placed with the estimated trajectory (see :class:`ScanSample`);
@@ -511,7 +539,7 @@ def write_outputs(
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     guard = OutputGuard(out)
-    rep = guard.run("report.json (metrics)", lambda: report_dict(res, true_map))
+    rep = guard.run("report.json (metrics)", lambda: report_dict(res, true_map, true_calibration))
     if rep is None:  # report.json is written all the same, with what needs no computing
         rep = {"backend": res.backend, "sensors": res.sensors, "poses": len(res.times)}
         if res.stats.get("partial"):

@@ -42,7 +42,7 @@ def run_cell(settings: dict[str, Any], folder: str, name: str = "") -> dict[str,
 def _run(settings: dict[str, Any], tmp: Path, name: str) -> dict[str, Any]:
     from fgslam.config import load_config, with_options
     from fgslam.io.formats import open_log
-    from fgslam.sim import simulate_to_log
+    from fgslam.sim import simulate_to_log, true_calibration
     from fgslam.sim.world import BUILTIN_WORLDS, load_world
     from fgslam.slam.outputs import write_outputs
     from fgslam.slam.runner import run_slam
@@ -66,6 +66,7 @@ def _run(settings: dict[str, Any], tmp: Path, name: str) -> dict[str, Any]:
         res,
         tmp,
         reader.meta.get("true_map"),
+        true_calibration=true_calibration(reader.meta),
         world=world if settings.get("world") in BUILTIN_WORLDS else None,
         cfg=cfg,
     )
