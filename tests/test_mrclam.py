@@ -306,7 +306,10 @@ def test_own_association_and_trajectory_against_truth(tmp_path, seed):
     model is the simulator's): the association agrees with the landmarks' subjects (purity
     >= 0.98, at most 2 % of the sightings left out) and the trajectory, SE(2)-aligned to the
     ground truth at the pose times, is within 6 cm RMS and under 0.4 of the odometry's
-    alone (measured: 2-4 cm against 12-44 cm on seeds 0-11)."""
+    alone (measured on seeds 0-11: 1.9-2.9 cm against 12-54 cm, at most 0.22 of it; purity
+    0.993 or more, at most 0.9 % unassigned). An easy case: the reader's model is the
+    simulator's; with the odometry noise doubled (and the model with it) the own association
+    splits landmarks on two of seeds 0-2 (300 s), the given one does not."""
     write_mrclam_like(tmp_path, seed, duration=DURATION)
     m = read_mrclam(tmp_path)
     assert m.dropped["sighting of a robot"] > 0 and m.dropped["unknown barcode"] > 0
