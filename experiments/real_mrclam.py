@@ -118,12 +118,13 @@ def table(rows: list[dict[str, object]]) -> str:
 
 def run(name: str, m: Mrclam, params, backends) -> list[dict[str, object]]:
     data = m.data
+    lines_skipped = sum(n for k, n in data.problems.skipped_by_reason.items() if ".dat: " in k)
     print(
         f"\n### {name}: robot {m.robot}, {len(data.steps) + 1} poses over "
         f"{m.pose_times[-1] - m.pose_times[0]:.0f} s, {data.n_sightings} sightings of "
         f"{len(data.landmarks)} landmarks; dropped: "
         + ", ".join(f"{k} {v}" for k, v in m.dropped.items())
-        + f"; lines skipped {data.problems.skipped - sum(m.dropped.values())}\n"
+        + f"; bad lines skipped {lines_skipped}\n"
     )
     rows = [
         row(m, run_points(data, backend, assoc, map_params=params))

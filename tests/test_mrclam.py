@@ -97,6 +97,7 @@ def test_hand_written_directory(mrclam_dir):
         "sighting of a robot": 1,
         "unknown barcode": 1,
         "outside the commands' time span": 2,
+        "after duration": 0,
     }
     assert data.problems.ignored["sighting of a robot"] == 1
     assert data.problems.skipped_by_reason["unknown barcode"] == 1
@@ -106,7 +107,12 @@ def test_hand_written_directory(mrclam_dir):
     assert m.landmarks_truth.keys() == {6, 7}
     assert m.landmarks_truth[7] == pytest.approx([3.0, -1.0])
     # duration cuts the log
-    assert read_mrclam(mrclam_dir, duration=1.6).pose_times.tolist() == [100.0, 101.5]
+    cut = read_mrclam(mrclam_dir, duration=1.6)
+    assert cut.pose_times.tolist() == [100.0, 101.5]
+    assert (
+        cut.dropped["after duration"] == 3
+        and "after duration" not in cut.data.problems.summary()["skipped_by_reason"]
+    )
 
 
 def test_step_covariance_matches_the_simulators_noise():

@@ -27,7 +27,8 @@ The files share one clock. What :func:`read_mrclam` makes of them:
   = (r cos b, r sin b) in the robot frame (m), its covariance that of independent range and
   bearing errors (:class:`MrclamNoise`) through the polar Jacobian. Sightings of robots
   (counted in ``problems.ignored``), of barcodes not in Barcodes.dat (misreads) and outside
-  the commands' time span are counted in ``problems`` and ``Mrclam.dropped`` and dropped.
+  the commands' time span are counted in ``problems`` and ``Mrclam.dropped`` and dropped
+  (those after ``duration``: in ``Mrclam.dropped`` only).
 
 Bad lines (wrong number of fields, a field that is not a number, not finite or beyond
 :data:`MAX_VALUE`, a subject or barcode that is not a non-negative integer, a range not
@@ -419,16 +420,19 @@ def read_mrclam(
     is_robot = np.isin(subject, ROBOTS)
     unknown = subject < 0
     t_meas = meas.vals[:, 0]
-    outside = (t_meas < t_odo[0]) | (t_meas > t_end)
-    keep = ~is_robot & ~unknown & ~outside
+    outside = (t_meas < t_odo[0]) | (t_meas > t_odo[-1])
+    late = ~outside & (t_meas > t_end)  # beyond ``duration``: not read, not a problem
+    keep = ~is_robot & ~unknown & ~outside & ~late
+    inside = ~outside & ~late
     dropped = {
-        "sighting of a robot": int((is_robot & ~outside).sum()),
-        "unknown barcode": int((unknown & ~outside).sum()),
+        "sighting of a robot": int((is_robot & inside).sum()),
+        "unknown barcode": int((unknown & inside).sum()),
         "outside the commands' time span": int(outside.sum()),
     }
     for reason, n in dropped.items():
         if n:
             pr.skipped_by_reason[reason] += n
+    dropped["after duration"] = int(late.sum())
     if dropped["sighting of a robot"]:
         pr.ignored["sighting of a robot"] += dropped["sighting of a robot"]
     if not keep.any():
