@@ -500,18 +500,30 @@ def calibrated_error(
     errors ``c``: pose j in pose i's frame minus :func:`calibrated_delta`, as (x, y, theta)
     in keyframe i's axes (the heading wrapped); its covariance is ``pre.covariance_start``.
     Returns the error and its Jacobians w.r.t. GTSAM's body tangents of poses i and j (3x3
-    each) and w.r.t. c (3x3)."""
+    each) and w.r.t. c (3x3).
+
+    The heading's wheelbase term scales the poses' turn, not the measured one: the error is
+    turn (1 + e_b) - (measured turn + its e_r, e_l terms), equal to first order to the turn
+    minus :func:`calibrated_delta`'s. Scaling the measured turn by (1 - e_b) would make the
+    wheels' noise a regressor's error: on a straight run the measured turn is that noise
+    alone, and the least-squares fit shrinks the turn's scale towards it (docs/design.md, 6:
+    errors in variables; e_b read about 5e-3 high in the simulated corridor)."""
     xi, yi, ti = (float(v) for v in pose_i)
     xj, yj, tj = (float(v) for v in pose_j)
     co, si = math.cos(ti), math.sin(ti)
     dx, dy = xj - xi, yj - yi
     qx, qy = co * dx + si * dy, -si * dx + co * dy
     m = calibrated_delta(pre, c)
-    e = np.array([qx - m[0], qy - m[1], wrap_angle(tj - ti - m[2])])
-    Hi = np.array([[-1.0, 0.0, qy], [0.0, -1.0, -qx], [0.0, 0.0, -1.0]])
+    Hc = -pre.calibration_jacobian.copy()
+    measured = Hc[2, 2]  # the measured turn (d theta / d e_b = -turn)
+    off = wrap_angle(tj - ti - measured)  # the poses' turn minus the measured one
+    e_b = float(np.asarray(c, dtype=float)[2])
+    e = np.array([qx - m[0], qy - m[1], wrap_angle(tj - ti - m[2]) + off * e_b])
+    Hc[2, 2] = measured + off  # the poses' turn
+    Hi = np.array([[-1.0, 0.0, qy], [0.0, -1.0, -qx], [0.0, 0.0, -1.0 - e_b]])
     cd, sd = math.cos(tj - ti), math.sin(tj - ti)
-    Hj = np.array([[cd, -sd, 0.0], [sd, cd, 0.0], [0.0, 0.0, 1.0]])
-    return e, Hi, Hj, -pre.calibration_jacobian
+    Hj = np.array([[cd, -sd, 0.0], [sd, cd, 0.0], [0.0, 0.0, 1.0 + e_b]])
+    return e, Hi, Hj, Hc
 
 
 def calibrated_odometry_factor(

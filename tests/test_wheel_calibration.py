@@ -18,6 +18,7 @@ from factors.odometry import (
     calibrated_delta,
     calibrated_error,
     calibrated_odometry_factor,
+    integrate_poses,
     preintegrate,
     propagate,
 )
@@ -90,10 +91,12 @@ def test_calibrated_error_jacobians(seed):
     pj = np.array([pj.x(), pj.y(), pj.theta()])
     c = rng.normal(0, 0.01, 3)
     e, Hi, Hj, Hc = calibrated_error(pi, pj, c, pre)
-    # the error is pose j in pose i's frame minus the calibrated motion
+    # the error is pose j in pose i's frame minus the calibrated motion; of the heading,
+    # the poses' turn scaled by the wheelbase error minus the measured turn and its wheel terms
     q = gtsam.Pose2(*pi).between(gtsam.Pose2(*pj))
     want = np.array([q.x(), q.y(), q.theta()]) - calibrated_delta(pre, c)
-    want[2] = wrap_angle(want[2])
+    Jc = pre.calibration_jacobian
+    want[2] = wrap_angle(q.theta() * (1 + c[2]) - pre.delta.theta() - Jc[2, :2] @ c[:2])
     np.testing.assert_allclose(e, want, atol=1e-12)
 
     def at(which, xi):
@@ -243,3 +246,51 @@ def test_calibration_is_learned_through_links_fused_with_scan_matches(biased_roo
         sig = np.array(res.calibration["sigma"])
         assert np.all(np.abs(est - truth) < 3 * sig) and np.all(sig < 0.01), (b, est, sig)
         assert ate < (0.5 if b == "ekf" else 0.8) * off[b][1] and ate < 0.02, (b, ate, off[b])
+
+
+def _straight_and_turns(rng, params: OdometryParams, noise: float, straight: int, turns: int):
+    """Keyframes of 21 encoder samples: ``straight`` runs at 0.4 m/s between turns on the spot
+    at 0.8 rad/s, the wheelbase and radii exact; returns the true poses (the turns' noise-free
+    integration) and each keyframe's preintegration of the wheel distances with relative
+    noise ``noise`` per sample."""
+    n, dt, D = 21, 0.01, params.wheelbase
+    drive = np.full(n, 0.4 * dt), np.full(n, 0.4 * dt)
+    turn = np.full(n, 0.4 * D * dt), np.full(n, -0.4 * D * dt)
+    true_lr, true_ll, pres = [], [], []
+    for k in range(turns * (straight + 1)):
+        lr, ll = turn if k % (straight + 1) == straight else drive
+        true_lr.append(lr)
+        true_ll.append(ll)
+        meas = [w * (1 + noise * rng.standard_normal(n)) for w in (lr, ll)]
+        pres.append(preintegrate(*meas, params))
+    poses = integrate_poses(np.concatenate(true_lr), np.concatenate(true_ll), D)[n - 1 :: n]
+    return np.vstack([np.zeros(3), poses]), pres
+
+
+def test_wheelbase_estimate_is_not_pulled_by_the_wheels_noise():
+    """Errors in variables: the poses known (a perfect laser), the wheels exact, only their
+    random noise (5 % per sample, forty straight keyframes per turn on the spot): the
+    wheelbase error's estimate stays at its true zero over 20 runs (mean within 3 standard
+    errors and 1e-3). With the wheelbase term scaling the measured turn, the straight
+    keyframes' noise-only turns pulled it to +2.7e-3 (9 standard errors: the fit shrinks the
+    turn's scale towards the noise)."""
+    rng = np.random.default_rng(11)
+    params = OdometryParams(0.42, 0.05, 0.05, 1e-4)
+    C = gtsam.symbol("c", 0)
+    est = []
+    for _ in range(20):
+        poses, pres = _straight_and_turns(rng, params, 0.05, straight=40, turns=20)
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        tight = gtsam.noiseModel.Isotropic.Sigma(3, 1e-6)
+        for k, p in enumerate(poses):
+            graph.add(gtsam.PriorFactorPose2(k, gtsam.Pose2(*p), tight))
+            values.insert(k, gtsam.Pose2(*p))
+        graph.add(gtsam.PriorFactorVector(C, np.zeros(3), gtsam.noiseModel.Isotropic.Sigma(3, 0.1)))
+        values.insert(C, np.zeros(3))
+        for k, pre in enumerate(pres):
+            noise = gtsam.noiseModel.Gaussian.Covariance(pre.covariance_start)
+            graph.add(calibrated_odometry_factor(k, k + 1, C, pre, noise))
+        result = gtsam.LevenbergMarquardtOptimizer(graph, values).optimize()
+        est.append(result.atVector(C)[2])
+    mean, se = np.mean(est), np.std(est) / math.sqrt(len(est))
+    assert abs(mean) < 3 * se and abs(mean) < 1e-3, (mean, se)
