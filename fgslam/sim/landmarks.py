@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from factors.geometry import wrap_angles
+from factors.geometry import wrap_angle, wrap_angles
 from fgslam.io.readers.mrclam import (
     BARCODES,
     DEFAULT_NOISE,
@@ -152,7 +152,7 @@ def _drive(
         c, s = math.cos(th), math.sin(th)
         lx, ly = x + LOOKAHEAD * c, y + LOOKAHEAD * s
         if abs(lx) > inner[0] or abs(ly) > inner[1]:
-            target = 2.0 * math.remainder(math.atan2(-y, -x) - th, math.tau)
+            target = 2.0 * wrap_angle(math.atan2(-y, -x) - th)
         else:
             target = wander
             ahead = (avoid[:, 0] - x) * c + (avoid[:, 1] - y) * s
