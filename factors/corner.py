@@ -108,13 +108,14 @@ def corner_factor(
     mount: Mount = IDENTITY_MOUNT,
     cal_key: int | None = None,
     cal_jacobian: ArrayLike | None = None,
+    cal_gain: ArrayLike | None = None,
 ) -> gtsam.CustomFactor:
     """Factor between a robot ``Pose2`` and a corner ``Pose2`` for a measured
     (phi_c, r_c, gamma) with a 3x3 noise model (full covariance allowed). With ``cal_key``
     (a calibration ``Vector``) the measurement reads z + ``cal_jacobian`` c
-    (:func:`factors.geometry.calibrated`)."""
+    (:func:`factors.calibrated.calibrated`, with its ``cal_gain``)."""
     return _make_corner_factor(
-        pose_key, corner_key, measured, noise, mount, 3, cal_key, cal_jacobian
+        pose_key, corner_key, measured, noise, mount, 3, cal_key, cal_jacobian, cal_gain
     )
 
 
@@ -126,12 +127,13 @@ def corner_bearing_range_factor(
     mount: Mount = IDENTITY_MOUNT,
     cal_key: int | None = None,
     cal_jacobian: ArrayLike | None = None,
+    cal_gain: ArrayLike | None = None,
 ) -> gtsam.CustomFactor:
     """Factor between a robot ``Pose2`` and a corner ``Pose2`` for a sonar corner: measured
     (phi_c, r_c) only, 2x2 noise model; the corner's orientation is left unconstrained.
-    ``cal_key``, ``cal_jacobian``: as :func:`corner_factor`."""
+    ``cal_key``, ``cal_jacobian``, ``cal_gain``: as :func:`corner_factor`."""
     return _make_corner_factor(
-        pose_key, corner_key, measured, noise, mount, 2, cal_key, cal_jacobian
+        pose_key, corner_key, measured, noise, mount, 2, cal_key, cal_jacobian, cal_gain
     )
 
 
@@ -144,6 +146,7 @@ def _make_corner_factor(
     dim: int,
     cal_key: int | None = None,
     cal_jacobian: ArrayLike | None = None,
+    cal_gain: ArrayLike | None = None,
 ) -> gtsam.CustomFactor:
     pm, rm = float(measured[0]), float(measured[1])
     gm = float(measured[2]) if dim == 3 else 0.0
@@ -176,5 +179,5 @@ def _make_corner_factor(
         return array((wrap_angle(phi - pm), r - rm))
 
     if cal_key is not None:
-        return calibrated(noise, [pose_key, corner_key], cal_key, cal_jacobian, error)
+        return calibrated(noise, [pose_key, corner_key], cal_key, cal_jacobian, error, cal_gain)
     return gtsam.CustomFactor(noise, [pose_key, corner_key], error)

@@ -179,12 +179,13 @@ def line_factor(
     mount: Mount = IDENTITY_MOUNT,
     cal_key: int | None = None,
     cal_jacobian: ArrayLike | None = None,
+    cal_gain: ArrayLike | None = None,
 ) -> gtsam.CustomFactor:
     """A factor between a robot ``Pose2`` and a world line ``Vector2`` (alpha_w, d_w) for a
     sensor-frame line measurement (alpha, d) with the given noise model. The pose Jacobian is
     w.r.t. GTSAM's body tangent: world columns rotated by the robot's heading. With
     ``cal_key`` (a calibration ``Vector``) the measurement reads z + ``cal_jacobian`` c
-    (:func:`factors.geometry.calibrated`)."""
+    (:func:`factors.calibrated.calibrated`, with its ``cal_gain``)."""
     am, dm = float(measured[0]), float(measured[1])
     mount = (float(mount[0]), float(mount[1]), float(mount[2]))
     # Per-factor Jacobian buffers: GTSAM copies them on assignment, and filling a few
@@ -210,5 +211,5 @@ def line_factor(
         return array((e0, e1))
 
     if cal_key is not None:
-        return calibrated(noise, [pose_key, line_key], cal_key, cal_jacobian, error)
+        return calibrated(noise, [pose_key, line_key], cal_key, cal_jacobian, error, cal_gain)
     return gtsam.CustomFactor(noise, [pose_key, line_key], error)

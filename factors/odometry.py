@@ -502,27 +502,33 @@ def calibrated_error(
     Returns the error and its Jacobians w.r.t. GTSAM's body tangents of poses i and j (3x3
     each) and w.r.t. c (3x3).
 
-    The heading's wheelbase term scales the poses' turn, not the measured one: the error is
-    turn (1 + e_b) - (measured turn + its e_r, e_l terms), equal to first order to the turn
-    minus :func:`calibrated_delta`'s. Scaling the measured turn by (1 - e_b) would make the
-    wheels' noise a regressor's error: on a straight run the measured turn is that noise
-    alone, and the least-squares fit shrinks the turn's scale towards it (docs/design.md, 6:
-    errors in variables; e_b read about 5e-3 high in the simulated corridor)."""
+    The error is in the wheels' own units, where their noise (``pre``'s covariance, computed
+    from the measured distances) lives: the position's is the poses' motion minus
+    :func:`calibrated_delta`'s, the heading's the poses' turn (1 + e_b) minus the measured turn
+    and its e_r, e_l terms, each divided by the wheels' mean scale 1 + (e_r + e_l) / 2, so
+    that a world scaled with the wheels and the wheelbase alike leaves it as it is; to first
+    order it is the poses' motion minus :func:`calibrated_delta`. Scaling the measured turn
+    by (1 - e_b) instead would make the wheels' noise a regressor's error: on a straight run
+    the measured turn is that noise alone, and the fit shrinks the turn's scale towards it
+    (e_b read 5e-3 high on the simulated corridor; docs/design.md, 6)."""
     xi, yi, ti = (float(v) for v in pose_i)
     xj, yj, tj = (float(v) for v in pose_j)
     co, si = math.cos(ti), math.sin(ti)
     dx, dy = xj - xi, yj - yi
     qx, qy = co * dx + si * dy, -si * dx + co * dy
+    c = np.asarray(c, dtype=float)
     m = calibrated_delta(pre, c)
     Hc = -pre.calibration_jacobian.copy()
     measured = Hc[2, 2]  # the measured turn (d theta / d e_b = -turn)
     off = wrap_angle(tj - ti - measured)  # the poses' turn minus the measured one
-    e_b = float(np.asarray(c, dtype=float)[2])
-    e = np.array([qx - m[0], qy - m[1], wrap_angle(tj - ti - m[2]) + off * e_b])
+    e_b = float(c[2])
+    k = 1.0 / (1.0 + 0.5 * (float(c[0]) + float(c[1])))  # 1 / the wheels' mean scale
+    e = k * np.array([qx - m[0], qy - m[1], wrap_angle(tj - ti - m[2]) + off * e_b])
     Hc[2, 2] = measured + off  # the poses' turn
-    Hi = np.array([[-1.0, 0.0, qy], [0.0, -1.0, -qx], [0.0, 0.0, -1.0 - e_b]])
+    Hc = k * Hc - np.outer(e, [0.5 * k, 0.5 * k, 0.0])
+    Hi = k * np.array([[-1.0, 0.0, qy], [0.0, -1.0, -qx], [0.0, 0.0, -1.0 - e_b]])
     cd, sd = math.cos(tj - ti), math.sin(tj - ti)
-    Hj = np.array([[cd, -sd, 0.0], [sd, cd, 0.0], [0.0, 0.0, 1.0 + e_b]])
+    Hj = k * np.array([[cd, -sd, 0.0], [sd, cd, 0.0], [0.0, 0.0, 1.0 + e_b]])
     return e, Hi, Hj, Hc
 
 

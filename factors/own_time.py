@@ -47,13 +47,14 @@ def interpolated_factor(
     noise: gtsam.noiseModel.Base,
     cal_key: int | None = None,
     cal_jacobian: ArrayLike | None = None,
+    cal_gain: ArrayLike | None = None,
 ) -> gtsam.CustomFactor:
     """A factor on keyframe poses ``key_a``, ``key_b`` and a vector landmark ``key_l``: the
     measurement ``z`` (robot frame at its own time) taken from the pose at fraction ``s``
     between them (:func:`interpolate_pose`); ``residual`` is the kind's prediction -
     measurement with world-frame Jacobians (e.g. :func:`factors.point.point_residual`). With
     ``cal_key`` the measurement reads z + ``cal_jacobian`` c
-    (:func:`factors.calibrated.calibrated`)."""
+    (:func:`factors.calibrated.calibrated`, with its ``cal_gain``)."""
     z = np.asarray(z, dtype=float)
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
@@ -66,5 +67,5 @@ def interpolated_factor(
         return e
 
     if cal_key is not None:
-        return calibrated(noise, [key_a, key_b, key_l], cal_key, cal_jacobian, error)
+        return calibrated(noise, [key_a, key_b, key_l], cal_key, cal_jacobian, error, cal_gain)
     return gtsam.CustomFactor(noise, [key_a, key_b, key_l], error)

@@ -92,12 +92,14 @@ def point_factor(
     robust: str = "none",
     cal_key: int | None = None,
     cal_jacobian: ArrayLike | None = None,
+    cal_gain: ArrayLike | None = None,
 ) -> gtsam.NonlinearFactor:
     """Built-in ``BearingRangeFactor2D`` for a sensor-frame (phi, r) with 2x2 covariance
     (order [bearing, range], as GTSAM's error); ``robust``: the robust kernel of its noise
     model (:func:`factors.noise.noise_model`). With ``cal_key`` (a calibration ``Vector``)
     the robot-frame measurement reads z + ``cal_jacobian`` c
-    (:func:`factors.calibrated.calibrated`; a Python factor of the same error)."""
+    (:func:`factors.calibrated.calibrated`, with its ``cal_gain``; a Python factor of the
+    same error)."""
     z, C = bearing_range_to_robot_frame(measured, covariance, mount)
     noise = noise_model(C, robust)
     if cal_key is None:
@@ -111,4 +113,4 @@ def point_factor(
             H[0], H[1] = to_body_jacobian(Hx, th), Hp
         return e
 
-    return calibrated(noise, [pose_key, point_key], cal_key, cal_jacobian, error)
+    return calibrated(noise, [pose_key, point_key], cal_key, cal_jacobian, error, cal_gain)

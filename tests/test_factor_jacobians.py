@@ -254,3 +254,47 @@ def test_calibrated_factors_read_the_measurement_moved_by_the_calibration(rng):
             e, e0 = f.unwhitenedError(values), plain.unwhitenedError(values)
             np.testing.assert_allclose(wrapped_diff(e, e0, [True, False, True][:dim]), 0, atol=1e-9)
             check_factor(f, values)
+
+
+def test_scale_columns_are_taken_at_the_prediction(rng):
+    """With a gain (factors.calibrated.scale_gain) for c's scale column, a line's, corner's and
+    point's error is e (1 + G c) + J c: a world scaled by (1 + s) seen with the scale error s
+    gives the same error as the true world with none (the measurement's noise is not shrunk
+    with the world), which J taken at the measurement alone does not; Jacobians checked
+    numerically, c's included."""
+    from factors.calibrated import scale_gain
+
+    s = 0.01
+    no_mount = (0.0, 0.0, 0.0)  # (a mount would not scale with the world)
+    for i in range(20):
+        pose, _, line = line_case(rng, i)
+        zp, _, _ = predict_line(pose, line, no_mount)
+        meas = np.array(normalize_line(zp[0], zp[1])) + rng.normal(0, [0.01, 0.01])
+        J = np.zeros((2, 2))
+        J[1] = [1.0, meas[1]]  # an offset's and a scale's Jacobian on d
+        G = scale_gain(J, meas, [1])
+        # the true world read with the scale error s, and the world (1 + s) times larger
+        # read without: the same ranges; the error must not tell them apart
+        true_w, scaled_w = gtsam.Values(), gtsam.Values()
+        for vals, k, c in ((true_w, 1.0, s), (scaled_w, 1.0 + s, 0.0)):
+            vals.insert(0, gtsam.Pose2(pose[0] * k, pose[1] * k, pose[2]))
+            vals.insert(1, np.array([line[0], line[1] * k]))
+            vals.insert(9, np.array([0.0, c]))
+        f = line_factor(0, 1, meas, UNIT2, no_mount, cal_key=9, cal_jacobian=J, cal_gain=G)
+        plain = line_factor(0, 1, meas, UNIT2, no_mount, cal_key=9, cal_jacobian=J)
+        e_scaled = f.unwhitenedError(scaled_w)
+        np.testing.assert_allclose(f.unwhitenedError(true_w), e_scaled, atol=1e-12)
+        noise = normalize_line(zp[0], zp[1])[1] - meas[1]  # the reading's error on d
+        gap = abs(plain.unwhitenedError(true_w)[1] - e_scaled[1])
+        assert gap == pytest.approx(s * abs(noise), rel=0.05)  # the noise shrunk with s
+        check_factor(f, true_w)
+    pose, mount, corner = corner_case(rng)
+    z, _, _ = predict_corner(pose, corner, mount)
+    meas = z + rng.normal(0, [0.01, 0.01, 0.01])
+    J = rng.normal(size=(3, 2))
+    values = gtsam.Values()
+    values.insert(0, gtsam.Pose2(*pose))
+    values.insert(1, gtsam.Pose2(*corner))
+    values.insert(9, np.array([0.003, 0.02]))
+    check_factor(corner_factor(0, 1, meas, UNIT3, mount, 9, J, scale_gain(J, meas, [1])), values)
+    assert scale_gain(J, meas, []) is None and scale_gain(J, [0.1, -1.0, 0.0], [1]) is None

@@ -91,12 +91,14 @@ def test_calibrated_error_jacobians(seed):
     pj = np.array([pj.x(), pj.y(), pj.theta()])
     c = rng.normal(0, 0.01, 3)
     e, Hi, Hj, Hc = calibrated_error(pi, pj, c, pre)
-    # the error is pose j in pose i's frame minus the calibrated motion; of the heading,
-    # the poses' turn scaled by the wheelbase error minus the measured turn and its wheel terms
+    # in the wheels' units: of the position, pose j in pose i's frame minus the calibrated
+    # motion; of the heading, the poses' turn scaled by the wheelbase error minus the
+    # measured turn and its wheel terms; both over the wheels' mean scale
     q = gtsam.Pose2(*pi).between(gtsam.Pose2(*pj))
     want = np.array([q.x(), q.y(), q.theta()]) - calibrated_delta(pre, c)
     Jc = pre.calibration_jacobian
     want[2] = wrap_angle(q.theta() * (1 + c[2]) - pre.delta.theta() - Jc[2, :2] @ c[:2])
+    want /= 1 + (c[0] + c[1]) / 2
     np.testing.assert_allclose(e, want, atol=1e-12)
 
     def at(which, xi):
@@ -294,3 +296,22 @@ def test_wheelbase_estimate_is_not_pulled_by_the_wheels_noise():
         est.append(result.atVector(C)[2])
     mean, se = np.mean(est), np.std(est) / math.sqrt(len(est))
     assert abs(mean) < 3 * se and abs(mean) < 1e-3, (mean, se)
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_a_world_scaled_with_the_wheels_leaves_the_odometry_error_as_it_is(seed):
+    """Poses 0.2 % farther apart with the wheels' three errors at +0.2 % read the same wheel
+    motion: the error (in the wheels' units) is the unscaled one's to second order (within
+    2 % of the difference the poses' units gave, the noise shrunk with the world)."""
+    rng = np.random.default_rng(200 + seed)
+    pre = preintegrate(*random_samples(rng), PARAMS)
+    pi = np.array([rng.uniform(-9, 9), rng.uniform(-9, 9), rng.uniform(-math.pi, math.pi)])
+    rel = np.array([pre.delta.x(), pre.delta.y(), pre.delta.theta()]) + rng.normal(0, 0.05, 3)
+    pj = gtsam.Pose2(*pi).compose(gtsam.Pose2(*rel))
+    pj = np.array([pj.x(), pj.y(), pj.theta()])
+    s = 2e-3
+    scale = np.array([1 + s, 1 + s, 1.0])
+    e0 = calibrated_error(pi, pj, np.zeros(3), pre)[0]
+    e1 = calibrated_error(pi * scale, pj * scale, np.full(3, s), pre)[0]
+    poses_units = np.array([*(e0[:2] * (1 + s)), e0[2]])  # what the old error gave, to first order
+    assert np.abs(e1 - e0).max() < 0.02 * np.abs(poses_units - e0).max() + 1e-9, e1 - e0

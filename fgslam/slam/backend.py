@@ -93,6 +93,12 @@ class Backend(ABC):
         """``f``'s dz/dc (None: it involves no estimated calibration error)."""
         return None if self.cal is None else self.cal.measurement_jacobian(f.Jc)
 
+    def _cal_gain(
+        self, J: NDArray[np.float64] | None, z: NDArray[np.float64]
+    ) -> NDArray[np.float64] | None:
+        """The gain that takes ``J``'s scale columns at the prediction (None: no scale)."""
+        return None if self.cal is None else self.cal.measurement_gain(J, z)
+
     def for_association(self, f: Feature) -> Feature:
         """``f`` as association and the tentative map should weigh it: where the range errors
         it involves are estimated (its ``cov`` then random only), with their uncertainty

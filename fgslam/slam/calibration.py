@@ -16,6 +16,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.linalg import block_diag
 
+from factors.calibrated import scale_gain
 from fgslam.frontend.features import SOURCES
 
 WHEEL_NAMES = ("e_r", "e_l", "e_b")
@@ -83,6 +84,25 @@ class Calibration:
         """The indices in c of the parts that features' measurements involve."""
         parts = [sl for sl in (self.laser, self.sound) if sl is not None]
         return np.concatenate([np.arange(sl.start, sl.stop) for sl in parts]).astype(np.intp)
+
+    @property
+    def scale_columns(self) -> NDArray[np.intp]:
+        """The indices in c of the relative scale errors of measured lengths: the laser's range
+        scale (when estimated) and the speed of sound's error."""
+        cols = []
+        if self.laser is not None and self.laser.stop - self.laser.start == 2:
+            cols.append(self.laser.start + 1)
+        if self.sound is not None:
+            cols.append(self.sound.start)
+        return np.array(cols, dtype=np.intp)
+
+    def measurement_gain(
+        self, J: NDArray[np.float64] | None, z: NDArray[np.float64]
+    ) -> NDArray[np.float64] | None:
+        """For a feature's dz/dc ``J`` (:meth:`measurement_jacobian`) and its measurement ``z``:
+        the gain that takes the scale columns at the prediction
+        (:func:`factors.calibrated.scale_gain`), or None."""
+        return None if J is None else scale_gain(J, z, self.scale_columns)
 
     def wheel_jacobian(self, J: NDArray[np.float64]) -> NDArray[np.float64]:
         """A Jacobian w.r.t. (e_r, e_l, e_b) (rows x 3) as one w.r.t. c (zero elsewhere)."""

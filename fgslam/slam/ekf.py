@@ -191,8 +191,15 @@ class EkfBackend(Backend):
             cols = np.r_[0:3, o : o + n]
             self._update(e, np.hstack([Hx, Hl]), f.cov, cols, gate=True)
             return
-        # z = h + J c: the residual and its Jacobian gain the calibration's columns
-        e = e + J @ self.x[3 : 3 + self.nc]
+        # z = h + J c: the residual and its Jacobian gain the calibration's columns (the
+        # scales' taken at the prediction: factors.calibrated.calibrated)
+        c = self.x[3 : 3 + self.nc]
+        G = self._cal_gain(J, f.z)
+        if G is not None:
+            k = 1.0 + G @ c
+            J = J + e[:, None] * G
+            e, Hx, Hl = k * e, k[:, None] * Hx, k[:, None] * Hl
+        e = e + J @ c
         cols = np.r_[0 : 3 + self.nc, o : o + n]
         self._update(e, np.hstack([Hx, J, Hl]), f.cov, cols, gate=True)
 

@@ -383,9 +383,11 @@ class GraphBackend(GraphGuard, Backend):
                     self.stats["sonar_own_time"] += 1
                     J = None if self.cal is None else self.cal.measurement_jacobian(own.Jc)
                     return models.own_time_factor(
-                        kind, X(self.k - 1), X(self.k), L(lid), s, own, self.robust, C, J
-                    )
-        return models.factor(kind, X(self.k), L(lid), f, self.robust, C, self._cal_jacobian(f))
+                        kind, X(self.k - 1), X(self.k), L(lid), s, own, self.robust, C, J,
+                        self._cal_gain(J, own.z),
+                    )  # fmt: skip
+        J = self._cal_jacobian(f)
+        return models.factor(kind, X(self.k), L(lid), f, self.robust, C, J, self._cal_gain(J, f.z))
 
     def measured_calibration_cov(self) -> NDArray[np.float64] | None:
         if self.cal is None or not self.cal.measured or self._c_cov is None:

@@ -219,14 +219,16 @@ def factor(
     robust: str = "none",
     cal_key: int | None = None,
     cal_jacobian: NDArray[np.float64] | None = None,
+    cal_gain: NDArray[np.float64] | None = None,
 ) -> gtsam.NonlinearFactor:
     """The GTSAM factor of a feature measured from pose ``pose_key`` of landmark ``lm_key``,
     its noise robust with the kernel ``robust`` (:func:`factors.noise.noise_model`); with a
     ``cal_jacobian`` (dz/dc, :class:`fgslam.slam.calibration.Calibration`) also of the
-    calibration variable ``cal_key``."""
+    calibration variable ``cal_key`` (``cal_gain``: its scale columns taken at the
+    prediction, :func:`factors.calibrated.calibrated`)."""
     if cal_jacobian is None:
         cal_key = None
-    cal = {"cal_key": cal_key, "cal_jacobian": cal_jacobian}
+    cal = {"cal_key": cal_key, "cal_jacobian": cal_jacobian, "cal_gain": cal_gain}
     if kind == "point":
         return point_factor(pose_key, lm_key, f.z, f.cov, robust=robust, **cal)
     noise = noise_model(f.cov, robust)
@@ -250,19 +252,22 @@ def own_time_factor(
     robust: str = "none",
     cal_key: int | None = None,
     cal_jacobian: NDArray[np.float64] | None = None,
+    cal_gain: NDArray[np.float64] | None = None,
 ) -> gtsam.NonlinearFactor:
     """The factor of a sonar point or plane measured at its own time (``own``, robot frame
     then) from the pose at fraction ``s`` between keyframe poses ``key_a`` and ``key_b``
     (:func:`factors.own_time.interpolated_factor`), robust with ``robust``; with a
-    ``cal_jacobian`` (dz/dc of ``own``) also of the calibration variable ``cal_key``."""
+    ``cal_jacobian`` (dz/dc of ``own``) also of the calibration variable ``cal_key``
+    (``cal_gain``: as :func:`factor`'s)."""
     if kind not in OWN_TIME_KINDS:
         raise ValueError(f"no own-time factor for {kind!r} landmarks")
     noise = noise_model(own.cov, robust)
     if cal_jacobian is None:
         cal_key = None
     return interpolated_factor(
-        OWN_TIME_KINDS[kind], key_a, key_b, lm_key, s, own.z, noise, cal_key, cal_jacobian
-    )
+        OWN_TIME_KINDS[kind], key_a, key_b, lm_key, s, own.z, noise, cal_key, cal_jacobian,
+        cal_gain,
+    )  # fmt: skip
 
 
 def value(kind: str, lm: NDArray[np.float64]) -> object:
