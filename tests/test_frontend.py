@@ -197,25 +197,6 @@ def test_sonar_moved_into_laser_frame_with_odometry():
     np.testing.assert_allclose(pts.xy[0], [arr.mount.x - 1.0 - m.x, arr.mount.y + 2.0], atol=1e-12)
 
 
-def test_pose_history_velocity_is_signed_and_centred():
-    """Reversing while turning clockwise: speed and turn rate negative; at a turn's start the
-    rate is read over a window centred on the time (half the new rate), not one ending there
-    (none), and as far as the odometry reaches beyond it."""
-    poses = PoseHistory()
-    for k in range(101):  # 1 s backwards at 0.3 m/s, turning at -0.5 rad/s
-        t = 0.01 * k
-        th = -0.5 * t
-        poses.add(t, np.array([-0.3 * t * math.cos(th / 2), -0.3 * t * math.sin(th / 2), th]))
-    v, w = poses.velocity(0.5)
-    assert v == pytest.approx(-0.3, rel=1e-2) and w == pytest.approx(-0.5, rel=1e-6)
-    start = PoseHistory()
-    for k in range(101):  # still for 0.5 s, then turning at 0.8 rad/s
-        t = 0.01 * k
-        start.add(t, np.array([0.0, 0.0, 0.8 * max(t - 0.5, 0.0)]))
-    assert start.velocity(0.5)[1] == pytest.approx(0.4, rel=1e-6)
-    assert start.velocity(1.0)[1] == pytest.approx(0.8, rel=1e-6)  # the last 0.25 s
-
-
 def test_phantoms_clusters_and_visibility():
     buf = SonarBuffer(CFG)
     poses = PoseHistory()

@@ -60,22 +60,16 @@ class PoseHistory:
         return out
 
     def velocity(self, t: float, window: float = 0.25) -> tuple[float, float]:
-        """The robot's speed (m/s, forward positive) and turn rate (rad/s, counter-clockwise
-        positive) at ``t``: the odometry's motion over ``window`` s centred on ``t`` as far as
-        the odometry reaches (one sample's rate is noise on logs whose samples come at
-        irregular or repeated stamps; a window that ends at ``t`` lags a turn's start and end)."""
+        """The robot's speed (m/s) and turn rate (rad/s) at ``t``: the odometry's motion over
+        the ``window`` s before it (one sample's rate is noise on logs whose samples come at
+        irregular or repeated stamps)."""
         if self._hi - self._lo < 2:
             return 0.0, 0.0
-        first, last = float(self._t[self._lo]), float(self._t[self._hi - 1])
-        end = min(t + 0.5 * window, max(last, t))
-        start = max(end - window, first)
-        span = end - start
+        a, b = self.at(np.array([t - window, t]))
+        span = min(window, t - float(self._t[self._lo]))
         if span <= 0:
             return 0.0, 0.0
-        a, b = self.at(np.array([start, end]))
-        mid = 0.5 * (a[2] + b[2])
-        ahead = (b[0] - a[0]) * math.cos(mid) + (b[1] - a[1]) * math.sin(mid)
-        return float(ahead) / span, float(b[2] - a[2]) / span
+        return float(np.hypot(*(b[:2] - a[:2]))) / span, abs(float(b[2] - a[2])) / span
 
     @property
     def last_time(self) -> float:
