@@ -13,6 +13,7 @@ CALIBRATION_CHOICES = ("off", "wheels")
 LASER_CALIBRATION_CHOICES = ("off", "offset", "range")
 CORNER_CHOICES = ("with-lines", "replace-lines", "off")
 POINTS_FROM_CHOICES = ("any-echo", "unfused-echoes")
+LINE_END_CHOICES = ("as-segmented", "at-vertex")
 SONAR_TIMING_CHOICES = ("scan-frame", "own-time")
 SONAR_CALIBRATION_CHOICES = ("off", "sound")
 ROBUST_CHOICES = ("none", "huber", "cauchy", "dcs")  # factors.noise.ROBUST_KERNELS
@@ -24,6 +25,7 @@ CHOICES = {
     **{("scanmatch", key): choices for key, choices in SCANMATCH_CHOICES.items()},
     ("frontend", "corners"): CORNER_CHOICES,
     ("frontend", "points_from"): POINTS_FROM_CHOICES,
+    ("frontend", "line_ends"): LINE_END_CHOICES,
     ("sonar", "timing"): SONAR_TIMING_CHOICES,
     ("sonar", "calibration"): SONAR_CALIBRATION_CHOICES,
     ("odometry", "calibration"): CALIBRATION_CHOICES,

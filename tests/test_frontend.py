@@ -645,11 +645,12 @@ def test_fused_feature_sound_jacobian_predicts_a_speed_of_sound_error():
 
 def test_a_wall_ends_at_its_vertex_not_on_the_next_wall():
     """A corridor (walls 1 m right and 2 m left) closed by a wall ahead: the right wall's
-    segment, scanned first, ends with beams of the wall ahead next to their vertex; each line
-    is fitted on its side of the vertex. Over 60 scans (the simulator's laser without
-    systematic errors or noise but its 5 cm quanta) the right wall's mean error stays within
-    0.5 mrad and 1 mm (before: 2.5 mrad and 4.3 mm outward)."""
-    from fgslam.sim.sensors import SimParams, laser_scan
+    segment, scanned first, ends with beams of the wall ahead next to their vertex. With
+    ``[frontend] line_ends = "at-vertex"`` each line is fitted on its side of the vertex: over
+    60 scans (the simulator's laser without systematic errors or noise but its 5 cm quanta)
+    the right wall's mean error stays within 0.5 mrad and 1 mm; as segmented (the default)
+    it is 2.5 mrad and 4.3 mm outward."""
+    from fgslam.sim.sensors import SimParams
     from fgslam.sim.world import parse_world
 
     world = parse_world(
@@ -665,8 +666,21 @@ def test_a_wall_ends_at_its_vertex_not_on_the_next_wall():
     )
     sim = SimParams(laser_sys_offset=0.0, laser_sys_per_metre=0.0, mixed_pixel_prob=0.0,
                     laser_sigma=0.0)  # fmt: skip
+    for line_ends, bias in (("at-vertex", False), ("as-segmented", True)):
+        mean = _right_wall_error(world, sim, line_ends)
+        assert (
+            (abs(mean[0]) > 2e-3 and mean[1] > 4e-3)
+            if bias
+            else (abs(mean[0]) < 5e-4 and abs(mean[1]) < 1e-3)
+        ), (line_ends, mean)
+
+
+def _right_wall_error(world, sim, line_ends: str) -> np.ndarray:
+    from fgslam.config import with_options
+    from fgslam.sim.sensors import laser_scan
+
     rng = np.random.default_rng(0)
-    fe = FrontEnd(CFG, mode="laser")
+    fe = FrontEnd(with_options(CFG, {"frontend": {"line_ends": line_ends}}), mode="laser")
     m = CFG.laser.mount
     errors = []
     for _ in range(60):
@@ -679,5 +693,4 @@ def test_a_wall_ends_at_its_vertex_not_on_the_next_wall():
             if f.kind == "line" and abs(e[0]) < 0.05 and abs(e[1]) < 0.1:
                 errors.append(e)
     assert len(errors) >= 55
-    mean = np.mean(errors, axis=0)
-    assert abs(mean[0]) < 5e-4 and abs(mean[1]) < 1e-3, mean
+    return np.mean(errors, axis=0)

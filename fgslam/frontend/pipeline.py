@@ -193,7 +193,8 @@ class FrontEnd:
             corners = []
             if self.p.corners != "off":  # (on the whole segments: the vertex's beams count)
                 corners = self._corners(segs, lines, phi, r, clusters, pts, stats)
-            self._split_at_vertices(segs, lines, phi, r, pts, stats)
+            if self.p.line_ends == "at-vertex":
+                self._split_at_vertices(segs, lines, phi, r, pts, stats)
             if self.p.corners == "replace-lines":  # a corner's points count once, in it
                 corners, used, dropped = points_once(corners)
                 stats["corners_sharing_a_wall"] += dropped
@@ -315,9 +316,9 @@ class FrontEnd:
 
     def _split_at_vertices(self, segs, lines, phi, r, pts, stats) -> None:
         """Consecutive segments whose lines meet (not within 20 deg of parallel) at a vertex
-        between them: each line is refitted on its segment's beams on its side of the
-        vertex's bearing, half a beam step clear of it (``lines`` updated in place; ``segs``
-        kept).
+        where the segments meet (within a few beams of their junction, at the range measured
+        there): each line is refitted on its segment's beams on its side of the vertex's
+        bearing, half a beam step clear of it (``lines`` updated in place; ``segs`` kept).
         The segmentation splits where the points leave a line, so the beams next to the
         vertex go to the segment scanned first, and that line ends with a beam or two of
         the next wall: in a room with its walls 1 m away, 2 mrad and 4 mm of bias."""
@@ -334,7 +335,10 @@ class FrontEnd:
             vx = (d1 * math.sin(a2) - d2 * math.sin(a1)) / det
             vy = (d2 * math.cos(a1) - d1 * math.cos(a2)) / det
             pv = math.atan2(vy, vx)
-            if not phi[s1.first] < pv < phi[s2.last]:
+            # a vertex where the segments meet: within a few beams of their junction and at
+            # the range measured there (not two walls an occlusion separates)
+            near = phi[max(s1.last - 3, s1.first)] <= pv <= phi[min(s2.first + 3, s2.last)]
+            if not near or abs(math.hypot(vx, vy) - r[s1.last]) > self.p.segment.outlier:
                 continue
             last = s1.first + int(np.searchsorted(phi[s1.first : s1.last + 1], pv - half_step)) - 1
             first = s2.first + int(np.searchsorted(phi[s2.first : s2.last + 1], pv + half_step))
