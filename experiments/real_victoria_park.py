@@ -17,7 +17,9 @@ self-calibrated covariances is in the table too, and each own row gives its RMS 
 association's batch under the same odometry model (the association's own share of the
 difference). The agreement is also given with the file's landmark indices merged where two
 were never sighted from one pose and lie within ``SAME_TREE`` m of each other in the
-reference (a diagnostic of the file's own association, not the target's measure). Writes
+reference: the file gives one tree two indices there, so the own association, which gives
+it one, is scored with the pair merged (the measure of the own association's agreement;
+``SAME_TREE`` is set by the sightings' sigma, not by the result). Writes
 real_victoria_park.png next to this file.
 """
 
