@@ -38,14 +38,14 @@ from fgslam.evaluation.metrics import align_se2, apply_se2, ate_at_times, match_
 from fgslam.io.readers.mrclam import Mrclam, read_mrclam
 from fgslam.sim.landmarks import write_mrclam_like
 from fgslam.slam.pointslam import (
+    ASSOCIATIONS,
+    BACKENDS,
     POINT_MAP_PARAMS,
     PointSlamResult,
     association_agreement,
     run_points,
 )
 
-BACKENDS = ("ekf", "isam2", "batch")
-ASSOCIATIONS = ("given", "own")
 COLUMNS = (
     "backend",
     "association",

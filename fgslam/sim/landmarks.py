@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from factors.geometry import wrap_angle, wrap_angles
+from factors.geometry import compose_poses, wrap_angle, wrap_angles
 from fgslam.io.readers.mrclam import (
     BARCODES,
     DEFAULT_NOISE,
@@ -78,17 +78,6 @@ def _exp1(vx: float, vy: float, w: float, dt: float) -> tuple[float, float, floa
     return b * vx * dt - a * vy * dt, a * vx * dt + b * vy * dt, th
 
 
-def _compose(p: NDArray[np.float64], d: NDArray[np.float64]) -> NDArray[np.float64]:
-    c, s = np.cos(p[:, 2]), np.sin(p[:, 2])
-    return np.column_stack(
-        [
-            p[:, 0] + c * d[:, 0] - s * d[:, 1],
-            p[:, 1] + s * d[:, 0] + c * d[:, 1],
-            p[:, 2] + d[:, 2],
-        ]
-    )
-
-
 def _place(
     rng: np.random.Generator, n: int, half: NDArray[np.float64], others: list, sep: float
 ) -> NDArray[np.float64]:
@@ -118,7 +107,7 @@ class _Run:
     def pose_at(self, t: NDArray[np.float64]) -> NDArray[np.float64]:
         """True poses at times ``t`` (s, within the commands' span; heading unwrapped)."""
         k = np.clip(np.searchsorted(self.t, t, side="right") - 1, 0, len(self.t) - 1)
-        return _compose(self.start[k], _exp(self.twist[k], t - self.t[k]))
+        return compose_poses(self.start[k], _exp(self.twist[k], t - self.t[k]))
 
 
 def _drive(
