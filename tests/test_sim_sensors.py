@@ -96,6 +96,20 @@ def test_laser_mixed_pixels_at_discontinuity():
     assert not np.any((r0 > 2.0) & (r0 < 3.9))
 
 
+def test_laser_grazing_wall_is_one_surface_not_mixed_pixels():
+    # a wall seen at grazing angles spans more depth than the mixed-pixel jump across a
+    # footprint, but is one surface: the PLS reads it, not a range in between
+    w = world(walls=[{"id": "w", "points": [[-20, 1], [20, 1]]}])
+    p = dataclasses.replace(EXACT, mixed_pixel_prob=1.0)
+    lc = dataclasses.replace(CFG.laser, range_resolution=1e-6, max_range=80.0)
+    r = laser_scan(w, lc, p, (0.0, 0.0, 0.0), 0.0, np.random.default_rng(3))
+    b = lc.bearings
+    seen = (b > 0.06) & (b < math.pi / 2 - 0.06)
+    depth = 1 / np.sin(b - math.radians(0.25)) - 1 / np.sin(b + math.radians(0.25))
+    assert np.sum(seen & (depth > p.mixed_pixel_jump)) > 5  # the case is exercised
+    np.testing.assert_allclose(r[seen], 1 / np.sin(b[seen]), atol=2e-6)
+
+
 def test_sonar_plane_only_near_normal_incidence():
     w = world(walls=[{"id": "w", "points": [[-5, 2], [5, 2]]}])
     e = echoes(w, (0.0, 0.0, math.pi / 2))

@@ -47,6 +47,20 @@ class SimParams:
     max_echoes: int = 6
 
 
+def _one_surface(hits: NDArray[np.float64], half: float, tol: NDArray[np.float64]) -> NDArray:
+    """Per beam: whether its centre ray (hits[0], bearing 0) meets the chord between its edge
+    rays' hits (hits[1] at -half, hits[2] at +half rad) within ``tol`` m, i.e. whether the
+    footprint lies on one surface rather than across a depth discontinuity."""
+    r0, r1, r2 = hits
+    c, s = math.cos(half), math.sin(half)
+    # edge hits in the beam's frame (centre ray along +x); the centre ray meets the chord at
+    # x where the line through them crosses y = 0
+    x1, y1, x2, y2 = r1 * c, -r1 * s, r2 * c, r2 * s
+    with np.errstate(invalid="ignore", divide="ignore"):
+        x = x1 - y1 * (x2 - x1) / (y2 - y1)
+        return np.abs(r0 - x) <= tol
+
+
 def laser_scan(
     world: World,
     laser: LaserConfig,
@@ -58,8 +72,10 @@ def laser_scan(
     """Ranges (m, NaN = no return) of one scan from the laser's world ``pose`` at time t.
 
     Each beam is cast three times across its footprint; where those disagree by more than a
-    mixed-pixel jump the PLS may report a range in between. Glass is not seen. Ranges get true
-    systematic and random errors, are quantised to the range resolution, and beyond the
+    mixed-pixel jump and the footprint straddles a depth discontinuity (its centre's range is
+    not the chord's between its edges': a wall seen at a grazing angle spans that depth too,
+    but as one surface), the PLS may report a range in between. Glass is not seen. Ranges get
+    true systematic and random errors, are quantised to the range resolution, and beyond the
     maximum range read as no return.
     """
     x, y, th = pose
@@ -72,6 +88,7 @@ def laser_scan(
     lo, hi = hits.min(axis=0), hits.max(axis=0)
     with np.errstate(invalid="ignore"):
         mixed = np.isfinite(hi) & (hi - lo > params.mixed_pixel_jump)
+        mixed &= ~_one_surface(hits, half, (hi - lo) / 4)
     mixed &= rng.random(r.size) < params.mixed_pixel_prob
     r[mixed] = lo[mixed] + rng.random(int(mixed.sum())) * (hi[mixed] - lo[mixed])
     r = r * (1 + params.laser_sys_per_metre) + params.laser_sys_offset
