@@ -493,6 +493,44 @@ def with_calibration(pre: Preintegrated, c: ArrayLike) -> Preintegrated:
     )
 
 
+def time_registration_jacobians(
+    delta: ArrayLike, twist_start: ArrayLike, twist_end: ArrayLike
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """d(delta)/d(t_start), d(delta)/d(t_end): how the relative pose ``delta`` (x, y, theta of
+    keyframe 2 in keyframe 1's frame) moves when either keyframe's scan was taken 1 s later
+    than its stamp says, the robot moving at ``twist`` = (v m/s forward, omega rad/s) then
+    (docs/design.md, 3.4). Keyframe 1 later: its frame moves on by (v, 0, omega), so
+    delta moves by -(v - omega y, omega x, omega); keyframe 2 later: delta moves by its own
+    heading's (v cos theta, v sin theta, omega)."""
+    x, y, th = (float(u) for u in delta)
+    v0, w0 = (float(u) for u in twist_start)
+    v1, w1 = (float(u) for u in twist_end)
+    a = np.array([-v0 + w0 * y, -w0 * x, -w0])
+    b = np.array([v1 * math.cos(th), v1 * math.sin(th), w1])
+    return a, b
+
+
+def with_time_registration(
+    pre: Preintegrated, twist_start: ArrayLike, twist_end: ArrayLike, sigma_t: float
+) -> Preintegrated:
+    """``pre``, measured between two scans' stamps, as the motion between the robot's poses
+    at the scans' true times, each scan's time off its stamp by an independent error of
+    sigma ``sigma_t`` (s): its covariance gains sigma_t^2 (a a^T + b b^T)
+    (:func:`time_registration_jacobians`). For one link only (e.g. to gate the next
+    keyframe's features): along a chain the errors cancel, each keyframe's entering two
+    links with opposite signs, and the graph models them once per scan (docs/design.md, 3.4)."""
+    if not (math.isfinite(sigma_t) and sigma_t >= 0):
+        raise ValueError("sigma_t must be finite and >= 0")
+    d = (pre.delta.x(), pre.delta.y(), pre.delta.theta())
+    a, b = time_registration_jacobians(d, twist_start, twist_end)
+    P = np.asarray(pre.covariance_start, dtype=float) + sigma_t**2 * (
+        np.outer(a, a) + np.outer(b, b)
+    )
+    return dataclasses.replace(
+        pre, covariance_start=P, covariance=to_between_covariance(P, pre.delta.theta())
+    )
+
+
 def calibrated_error(
     pose_i: ArrayLike, pose_j: ArrayLike, c: ArrayLike, pre: Preintegrated
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:

@@ -14,6 +14,7 @@ LASER_CALIBRATION_CHOICES = ("off", "offset", "range")
 CORNER_CHOICES = ("with-lines", "replace-lines", "off")
 POINTS_FROM_CHOICES = ("any-echo", "unfused-echoes")
 LINE_END_CHOICES = ("as-segmented", "at-vertex")
+TIME_REGISTRATION_CHOICES = ("per-feature", "per-scan")
 SONAR_TIMING_CHOICES = ("scan-frame", "own-time")
 SONAR_CALIBRATION_CHOICES = ("off", "sound")
 ROBUST_CHOICES = ("none", "huber", "cauchy", "dcs")  # factors.noise.ROBUST_KERNELS
@@ -30,6 +31,7 @@ CHOICES = {
     ("sonar", "calibration"): SONAR_CALIBRATION_CHOICES,
     ("odometry", "calibration"): CALIBRATION_CHOICES,
     ("laser", "calibration"): LASER_CALIBRATION_CHOICES,
+    ("laser", "time_registration"): TIME_REGISTRATION_CHOICES,
     ("graph", "robust"): ROBUST_CHOICES,
     ("graph", "factorization"): FACTORIZATION_CHOICES,
     ("localize", "motion"): LOCALIZE_MOTION_CHOICES,

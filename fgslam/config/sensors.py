@@ -130,6 +130,19 @@ class LaserConfig:
     # features carry their Jacobians instead): "offset" (the scale keeps its worst case),
     # "range" (offset and scale), "off" (the paper's worst case for both)
     calibration: str = param("off", "choice", "range errors estimated: offset, range, off")
+    # how a scan's time error (sigma_time) is modelled (docs/design.md, 3.4): "per-feature"
+    # (each laser feature's covariance inflated on its own, the paper's way) or "per-scan"
+    # (once per scan: the graph's keyframe poses are the robot's at the scans' true times,
+    # tied to its poses at the stamps, which the wheel odometry links; the EKF, which has no
+    # such pose, inflates the features itself)
+    time_registration: str = param(
+        "per-feature", "choice", "a scan's time error: per-feature or per-scan"
+    )
+
+    def time_sigma(self, model: str) -> float:
+        """``sigma_time`` (s) where the time error is modelled as ``model`` (one of
+        ``time_registration``'s choices) and that is the configured one, else 0."""
+        return self.sigma_time if model == self.time_registration else 0.0
 
     def calibration_prior(self) -> Any:
         """The prior covariance of the estimated range errors (offset m; scale), or None."""

@@ -101,6 +101,7 @@ class FrontEnd:
         self.mount = (m.x, m.y, math.radians(m.yaw_deg))
         self.half_slot = 0.5 * cfg.laser.scan_period
         self.mean_delay = 0.5 * (cfg.laser.delay_min + cfg.laser.delay_max)
+        self._echo_time = (0.0, 0.0, 0.0)  # (|v| m/s, |omega| rad/s, sigma_t s) of the scan
         self._next_sonar_step: float | None = None
         self._saw_laser = False
         self.now = -math.inf
@@ -169,6 +170,9 @@ class FrontEnd:
         test looks beams up by their spacing); every other step takes them as they are."""
         stats: Counter = Counter()
         t = scan.t
+        # the scan's time error, modelled per scan, is on the pose the laser features see;
+        # the sonar, moved to the stamp by odometry, carries it per echo (docs/design.md, 3.4)
+        self._echo_time = (abs(v), abs(w), self.cfg.laser.time_sigma("per-scan"))
         phi = scan_bearings(scan, self.cfg.laser)
         r = np.asarray(scan.ranges, dtype=float).copy()
         bad = ~np.isfinite(r) | (r <= 0)
@@ -206,7 +210,7 @@ class FrontEnd:
                     LINE_ANGULAR if f.kind == "line" else CORNER_ANGULAR,
                     v,
                     w,
-                    self.cfg.laser.sigma_time,
+                    self.cfg.laser.time_sigma("per-feature"),
                 )
                 feats.append(f)
         if use_sonar and pts is not None:
@@ -441,7 +445,9 @@ class FrontEnd:
 
     def _plane_cov(self, pts: SonarPoints, i: int) -> NDArray[np.float64]:
         C = self.sonar_model.covariance(pts.r[i])
-        return _plane(pts.sensor[i], pts.bearing[i], pts.r[i], C)[1]
+        C = _plane(pts.sensor[i], pts.bearing[i], pts.r[i], C)[1]
+        v, w, sig = self._echo_time
+        return time_registration_inflation(C, LINE_ANGULAR, v, w, sig) if sig else C
 
     def _own(self, pts: SonarPoints, i: int, kind: str) -> OwnTime:
         """Echo ``i`` as a point (bearing, range) or plane (alpha, d) measurement from the
@@ -465,7 +471,11 @@ class FrontEnd:
         _, _, tth = pts.sensor[i]
         a, rr = tth + pts.bearing[i], pts.r[i]
         J = np.array([[-rr * math.sin(a), math.cos(a)], [rr * math.cos(a), math.sin(a)]])
-        return J @ self.sonar_model.covariance(rr) @ J.T
+        C = self.sonar_model.covariance(rr)
+        v, w, sig = self._echo_time
+        if sig:
+            C = time_registration_inflation(C, (True, False), v, w, sig)
+        return J @ C @ J.T
 
     def _fuse(self, feats: list[Feature], pts: SonarPoints, slot, stats) -> NDArray[np.bool_]:
         """Fuse the slot's sonar planes into the laser lines and its corner echoes into the

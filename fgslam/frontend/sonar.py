@@ -60,16 +60,20 @@ class PoseHistory:
         return out
 
     def velocity(self, t: float, window: float = 0.25) -> tuple[float, float]:
-        """The robot's speed (m/s) and turn rate (rad/s) at ``t``: the odometry's motion over
-        the ``window`` s before it (one sample's rate is noise on logs whose samples come at
-        irregular or repeated stamps)."""
+        """The robot's speed (m/s, negative backwards) and turn rate (rad/s,
+        counter-clockwise positive) at ``t``: the odometry's motion over the ``window`` s
+        before it (one sample's rate is noise on logs whose samples come at irregular or
+        repeated stamps)."""
         if self._hi - self._lo < 2:
             return 0.0, 0.0
         a, b = self.at(np.array([t - window, t]))
         span = min(window, t - float(self._t[self._lo]))
         if span <= 0:
             return 0.0, 0.0
-        return float(np.hypot(*(b[:2] - a[:2]))) / span, abs(float(b[2] - a[2])) / span
+        d, turn = b[:2] - a[:2], float(b[2] - a[2])
+        mid = float(a[2]) + 0.5 * turn
+        forward = float(d[0]) * math.cos(mid) + float(d[1]) * math.sin(mid)
+        return math.copysign(float(np.hypot(*d)), forward) / span, turn / span
 
     @property
     def last_time(self) -> float:

@@ -62,6 +62,22 @@ class Run:
         )
 
 
+FIRST_SCAN = 0.05  # s: the first simulated laser scan's true time
+
+
+def laser_scan_time(cfg: RobotConfig, k: int | NDArray[np.int64]) -> float | NDArray[np.float64]:
+    """The true time (s) of the k-th simulated laser scan: one every scan period."""
+    return FIRST_SCAN + k * cfg.laser.scan_period
+
+
+def true_scan_time(cfg: RobotConfig, t: float) -> float:
+    """The true time (s) of the simulated scan that the front end stamps ``t`` (its host
+    stamp less the mean delay: within half the delay spread of it, less than half a scan
+    period)."""
+    k = max(0, round((t - FIRST_SCAN) / cfg.laser.scan_period))
+    return float(laser_scan_time(cfg, k))
+
+
 def _streams(seed: int) -> list[np.random.Generator]:
     return [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(4)]
 
@@ -211,7 +227,8 @@ def events(
     def laser() -> Iterator[tuple[float, int, int, Event]]:
         m = cfg.laser.mount
         mount = (m.x, m.y, math.radians(m.yaw_deg))
-        t_scan, k = 0.05, 0
+        k = 0
+        t_scan = laser_scan_time(cfg, k)
         pending: list[tuple[float, int, Event]] = []
         while True:
             if t_scan <= end:
@@ -222,7 +239,7 @@ def events(
                 if t_host <= end:
                     pending.append((t_host, k, LaserScan(t_host, ranges)))
                 k += 1
-                t_scan += cfg.laser.scan_period
+                t_scan = laser_scan_time(cfg, k)
             if not pending:
                 return
             pending.sort(key=lambda p: p[0])

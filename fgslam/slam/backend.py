@@ -9,6 +9,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from factors.odometry import Preintegrated
+from factors.sensor_models import CORNER_ANGULAR, LINE_ANGULAR, time_registration_inflation
 from fgslam.frontend.features import Feature
 from fgslam.slam.calibration import Calibration
 
@@ -26,13 +27,23 @@ class Backend(ABC):
 
     name = "backend"
     cal: Calibration | None = None  # the calibration errors estimated (None: none)
+    # s: a scan's time error where it is modelled once per scan (``[laser] time_registration
+    # = "per-scan"``; 0: the front end inflated the features already, or no time error)
+    time_sigma: float = 0.0
 
     def __init__(self) -> None:
         self.trajectory: list[tuple[float, NDArray[np.float64], NDArray[np.float64]]] = []
         self._pending_t = 0.0
 
     @abstractmethod
-    def start(self, t: float, pose: NDArray[np.float64], cov: NDArray[np.float64]) -> None: ...
+    def start(
+        self,
+        t: float,
+        pose: NDArray[np.float64],
+        cov: NDArray[np.float64],
+        *,
+        twist: tuple[float, float] = (0.0, 0.0),
+    ) -> None: ...
 
     # whether :meth:`keyframe_poses`, :meth:`relative` and :meth:`add_loop` work (a filter
     # keeps no past poses to close a loop on)
@@ -40,10 +51,34 @@ class Backend(ABC):
 
     @abstractmethod
     def predict(
-        self, t: float, pre: Preintegrated | None, scan: Preintegrated | None = None
+        self,
+        t: float,
+        pre: Preintegrated | None,
+        scan: Preintegrated | None = None,
+        *,
+        twist: tuple[float, float] = (0.0, 0.0),
     ) -> None:
         """A new keyframe at ``t``, reached by the wheel odometry ``pre`` and/or the scan
-        match ``scan`` (relative poses from the last keyframe; at least one given)."""
+        match ``scan`` (relative poses from the last keyframe; at least one given); ``twist``
+        the robot's (speed m/s, turn rate rad/s) at its scan."""
+
+    def time_registered(self, features: list[Feature], twist: tuple[float, float]) -> list[Feature]:
+        """The keyframe's features as this backend weighs the scan's time error modelled per
+        scan (:attr:`time_sigma`, ``twist`` the robot's (m/s, rad/s) at the scan): a backend
+        with no pose at the scan's true time (a filter) inflates each laser line and corner by
+        the motion, as the front end does per feature (docs/design.md, 3.4)."""
+        if not self.time_sigma:
+            return features
+        out = []
+        for f in features:
+            if f.source in ("laser", "fused") and f.kind in ("line", "corner"):
+                angular = LINE_ANGULAR if f.kind == "line" else CORNER_ANGULAR
+                cov = time_registration_inflation(
+                    f.cov, angular, abs(twist[0]), abs(twist[1]), self.time_sigma
+                )
+                f = dataclasses.replace(f, cov=cov)
+            out.append(f)
+        return out
 
     @abstractmethod
     def pose(self) -> NDArray[np.float64]:

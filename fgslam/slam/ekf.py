@@ -48,8 +48,10 @@ class EkfBackend(Backend):
         gate_p: float | None = 0.9999,
         motion_gate_p: float = KeyframeParams.motion_gate_p,  # the configuration's default
         calibration: Calibration | NDArray[np.float64] | None = None,
+        time_sigma: float = 0.0,
     ) -> None:
         super().__init__()
+        self.time_sigma = time_sigma  # per scan: this filter inflates the features itself
         self.cal = as_calibration(calibration)
         self.nc = 0 if self.cal is None else self.cal.dim  # states 3:3+nc
         # None: no gate (the association is given and trusted, e.g. Victoria Park's file)
@@ -61,7 +63,14 @@ class EkfBackend(Backend):
         self.index: dict[int, tuple[int, str]] = {}  # landmark id -> (offset, kind)
         self._angles = np.array([2])  # the state's angles (wrapped after each update)
 
-    def start(self, t: float, pose: NDArray[np.float64], cov: NDArray[np.float64]) -> None:
+    def start(
+        self,
+        t: float,
+        pose: NDArray[np.float64],
+        cov: NDArray[np.float64],
+        *,
+        twist: tuple[float, float] = (0.0, 0.0),
+    ) -> None:
         self.x = np.array(pose, dtype=float)
         self.P = np.array(cov, dtype=float)
         if self.cal is not None:  # states 3:3+nc, before any landmark
@@ -72,7 +81,12 @@ class EkfBackend(Backend):
         self._pending_t = t
 
     def predict(
-        self, t: float, pre: Preintegrated | None, scan: Preintegrated | None = None
+        self,
+        t: float,
+        pre: Preintegrated | None,
+        scan: Preintegrated | None = None,
+        *,
+        twist: tuple[float, float] = (0.0, 0.0),
     ) -> None:
         """Predict with the wheel odometry ``pre`` and/or the scan match ``scan``; with both,
         their fusion, or the scan match alone where the two disagree beyond

@@ -32,10 +32,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from factors.odometry import (
+    COVARIANCE_FLOOR,
     Preintegrated,
     calibrated_odometry_factor,
     fuse_motions,
     with_calibration,
+    with_time_registration,
 )
 from fgslam.choices import SONAR_TIMING_CHOICES
 from fgslam.frontend.features import Feature
@@ -43,7 +45,7 @@ from fgslam.slam import models
 from fgslam.slam.backend import Backend, Estimate
 from fgslam.slam.calibration import Calibration, as_calibration
 from fgslam.slam.graph_guard import GraphGuard, prior_factor, weak_noise
-from fgslam.slam.graph_keys import C, L, X, blockdiag
+from fgslam.slam.graph_keys import C, L, S, X, blockdiag
 from fgslam.slam.graph_solve import (
     GraphSolution,
     chi2_per_dof,
@@ -102,8 +104,12 @@ class GraphBackend(GraphGuard, Backend):
         calibration: Calibration | NDArray[np.float64] | None = None,
         sonar_timing: str = "scan-frame",
         factorization: str = "QR",
+        time_sigma: float = 0.0,
     ) -> None:
         super().__init__()
+        self.time_sigma = time_sigma
+        self._twists: dict[int, tuple[float, float]] = {}  # keyframe k's (m/s, rad/s)
+        self._stamped: set[int] = set()  # the keyframes with a pose at the stamp, S(k)
         if sonar_timing not in SONAR_TIMING_CHOICES:
             raise ValueError(f"unknown sonar timing {sonar_timing!r}")
         self.own_time = sonar_timing == "own-time"
@@ -153,7 +159,14 @@ class GraphBackend(GraphGuard, Backend):
 
     # ------------------------------------------------------------------ keyframes
 
-    def start(self, t: float, pose: NDArray[np.float64], cov: NDArray[np.float64]) -> None:
+    def start(
+        self,
+        t: float,
+        pose: NDArray[np.float64],
+        cov: NDArray[np.float64],
+        *,
+        twist: tuple[float, float] = (0.0, 0.0),
+    ) -> None:
         self.k = 0
         self.times.append(t)
         self._start_cov = np.array(cov, dtype=float)
@@ -162,6 +175,7 @@ class GraphBackend(GraphGuard, Backend):
         R = models.rot_block(pose[2])
         self.new_graph.add(gtsam.PriorFactorPose2(X(0), p, models.noise_model(R.T @ cov @ R)))
         self.new_values.insert(X(0), p)
+        self._stamp_pose(0, p, twist)
         if self.cal is not None:
             self.new_values.insert(C, np.zeros(self.cal.dim))
             prior = models.noise_model(self.cal.prior)
@@ -176,12 +190,15 @@ class GraphBackend(GraphGuard, Backend):
         pre: Preintegrated | None,
         scan: Preintegrated | None = None,
         origin: int | None = None,
+        *,
+        twist: tuple[float, float] = (0.0, 0.0),
     ) -> None:
         """A new pose linked to keyframe ``origin`` (default: the last) by the wheel odometry
         ``pre`` and/or the scan match ``scan``: one between factor each; with both, each
         carries the robust kernel (they check each other, the landmarks arbitrate); one
         alone is Gaussian. (An earlier ``origin``: a continued session's first keyframe,
-        placed on a restored one.)"""
+        placed on a restored one.) With :attr:`time_sigma`, the wheels link the poses at the
+        stamps (:meth:`_stamp_pose`)."""
         o = self._origin = self.k if origin is None else int(origin)
         prev = self._prev = self._pose_estimate(X(o))
         self.k += 1
@@ -201,24 +218,56 @@ class GraphBackend(GraphGuard, Backend):
             self.new_graph.add(
                 gtsam.BetweenFactorPose2(X(o), X(self.k), first.delta, weak_noise(3))
             )
+        # the wheels measure the motion between the stamps (S: with a time error modelled)
+        wheel_keys = (
+            S(o) if o in self._stamped else X(o),
+            S(self.k) if self.time_sigma > 0 else X(self.k),
+        )
         for m in motions:
+            a, b = wheel_keys if m is pre else (X(o), X(self.k))
             if m is pre and self._calibrated:
                 noise = models.noise_model(m.covariance_start, kernel)
-                f = calibrated_odometry_factor(X(o), X(self.k), C, m, noise, cal.wheels, cal.dim)
+                f = calibrated_odometry_factor(a, b, C, m, noise, cal.wheels, cal.dim)
                 self.new_graph.add(f)
                 continue
             noise = models.noise_model(m.covariance, kernel)
-            self.new_graph.add(gtsam.BetweenFactorPose2(X(o), X(self.k), m.delta, noise))
+            self.new_graph.add(gtsam.BetweenFactorPose2(a, b, m.delta, noise))
         if self._calibrated:
             pre = with_calibration(pre, self._c[cal.wheels])
+        if pre is not None and self.time_sigma > 0:  # the motion between the true times
+            pre = with_time_registration(
+                pre, self._twists.get(o, (0.0, 0.0)), twist, self.time_sigma
+            )
         if pre is None or scan is None:
             self._pre = pre or scan
         else:
             self._pre = fuse_motions(pre, scan)
         pred = prev.compose(self._pre.delta)
         self.new_values.insert(X(self.k), pred)
+        self._stamp_pose(self.k, pred, twist)
         self._pose_pred = np.array([pred.x(), pred.y(), pred.theta()])
         self._pending_t = t
+
+    def time_registered(self, features: list[Feature], twist: tuple[float, float]) -> list[Feature]:
+        """The features as measured: they see X(k), the pose at the scan's true time; the
+        time error is on its tie to S(k) (:meth:`_stamp_pose`)."""
+        return features
+
+    def _stamp_pose(self, k: int, pose: gtsam.Pose2, twist: tuple[float, float]) -> None:
+        """Keyframe ``k``'s pose at its scan's stamp, S(k), tied to X(k), the robot's at the
+        scan's true time: the scan's time error d (sigma :attr:`time_sigma`) moves it by
+        (v d, 0, omega d) in X(k)'s frame, a rank-one covariance (plus the odometry's
+        numerical floor) (docs/design.md, 3.4). Off (no S) without a time error."""
+        self._twists[k] = twist
+        if self.time_sigma <= 0:
+            return
+        self._stamped.add(k)
+        u = np.array([twist[0], 0.0, twist[1]])
+        cov = self.time_sigma**2 * np.outer(u, u) + COVARIANCE_FLOOR * np.eye(3)
+        self.new_graph.add(
+            gtsam.BetweenFactorPose2(X(k), S(k), gtsam.Pose2(), models.noise_model(cov))
+        )
+        self.new_values.insert(S(k), pose)
 
     # ------------------------------------------------------------------ loop closures
 
@@ -448,9 +497,17 @@ class GraphBackend(GraphGuard, Backend):
         self._converge()
         self._refresh_means()
         self.solution = GraphSolution(
-            self.graph, self._est, self.times, self.kinds, self.covariances
+            self.graph, self._est, self.times, self.kinds, self.covariances, self.time_spread()
         )
         return self.solution.trajectory()
+
+    def time_spread(self) -> dict[int, NDArray[np.float64]]:
+        """Per keyframe with a pose at its stamp: its time error's sigma times the robot's body
+        twist (v, 0, omega) then (for :class:`GraphSolution`)."""
+        sig = self.time_sigma
+        return {
+            k: sig * np.array([self._twists[k][0], 0.0, self._twists[k][1]]) for k in self._stamped
+        }
 
     def calibration_estimate(
         self,

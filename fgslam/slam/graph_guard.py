@@ -184,7 +184,7 @@ class GraphGuard:
     def _kind(self, key: int) -> models.Kind:
         """How variable ``key`` is stored: a pose, the calibration vector or a landmark."""
         sym = gtsam.Symbol(key)
-        if sym.chr() == ord("x"):
+        if sym.chr() in (ord("x"), ord("s")):
             return POSE_VARIABLE
         if key == C:
             n = self.cal.dim

@@ -1,4 +1,5 @@
-"""The factor graph's variables (docs/design.md, 6): robot poses X(k) (``Pose2``), landmarks
+"""The factor graph's variables (docs/design.md, 6): robot poses X(k) (``Pose2``; and S(k) at
+the stamps with the per-scan time registration), landmarks
 L(id) (lines ``Vector2`` (alpha, d), corners ``Pose2``, points ``Point2``) and the
 calibration errors C (one ``Vector`` for the whole run), and the small helpers every graph
 module shares."""
@@ -16,6 +17,12 @@ from fgslam.slam import models
 
 def X(k: int) -> int:
     return gtsam.symbol("x", k)
+
+
+def S(k: int) -> int:
+    """Keyframe k's pose at its scan's stamp (``[laser] time_registration = "per-scan"``):
+    X(k) is the robot's pose at the scan's true time, which the scan's features see."""
+    return gtsam.symbol("s", k)
 
 
 def L(i: int) -> int:

@@ -47,9 +47,12 @@ class GraphSolution:
         times: list[float],
         kinds: dict[int, str],
         covariances: bool = True,
+        time_spread: dict[int, NDArray[np.float64]] | None = None,
     ) -> None:
         self.graph, self.values, self.times, self.kinds = graph, values, list(times), kinds
         self.covariances = covariances
+        # keyframe k's time error times the robot's body twist (v, 0, omega), s x (m/s, rad/s)
+        self.time_spread = time_spread or {}
         self._marg: gtsam.Marginals | None = None
 
     def _marginals(self) -> gtsam.Marginals | gtsam.ISAM2:
@@ -67,11 +70,21 @@ class GraphSolution:
         return self._marg
 
     def trajectory(self) -> list[tuple[float, NDArray[np.float64], NDArray[np.float64] | None]]:
+        """(t, pose, world covariance) per keyframe: X(k), the robot at its scan's true time,
+        as the pose at the keyframe's time t: where the scan's time error is modelled per scan
+        (:attr:`time_spread`), its covariance gains the motion over that error (world frame;
+        docs/design.md, 3.4)."""
         covs = self._pose_covariances()
         out = []
         for k, t in enumerate(self.times):
             p = self.values.atPose2(X(k))
-            out.append((t, np.array([p.x(), p.y(), p.theta()]), covs[k] if covs else None))
+            cov = covs[k] if covs else None
+            u = self.time_spread.get(k)
+            if cov is not None and u is not None:
+                c, s = math.cos(p.theta()), math.sin(p.theta())
+                w = np.array([c * u[0] - s * u[1], s * u[0] + c * u[1], u[2]])
+                cov = cov + np.outer(w, w)
+            out.append((t, np.array([p.x(), p.y(), p.theta()]), cov))
         return out
 
     def means(self) -> dict[int, NDArray[np.float64]]:
@@ -151,7 +164,12 @@ class BatchSmoother:
         self.source = source
         self.stats = getattr(source, "stats", {})
         self.solution = GraphSolution(
-            source.graph, values, source.times, source.kinds, source.covariances
+            source.graph,
+            values,
+            source.times,
+            source.kinds,
+            source.covariances,
+            source.time_spread(),
         )
         self.seconds = time.perf_counter() - t0
 

@@ -60,11 +60,16 @@ def make_backend(
     """A backend by name, built from ``cfg``: the EKF's gate between wheel odometry and a scan
     match of one link (``keyframes.motion_gate_p``, default ``cfg.keyframes``;
     :meth:`EkfBackend.predict`), the graph's solver settings (``cfg.graph``) and sonar timing
-    (``cfg.sonar.timing``; the EKF has only the scan frame); ``calibration``: the calibration
-    errors to estimate (:meth:`Calibration.from_config`; None: off)."""
+    (``cfg.sonar.timing``; the EKF has only the scan frame), the scan's time error where it
+    is modelled per scan (``cfg.laser``); ``calibration``: the calibration errors to estimate
+    (:meth:`Calibration.from_config`; None: off)."""
     if name == "ekf":
         gate = (keyframes or KeyframeParams.from_config(cfg)).motion_gate_p
-        return EkfBackend(motion_gate_p=gate, calibration=calibration)
+        return EkfBackend(
+            motion_gate_p=gate,
+            calibration=calibration,
+            time_sigma=cfg.laser.time_sigma("per-scan"),
+        )
     if name in ("isam2", "batch"):  # batch: the iSAM2 graph, solved by LM at the end
         g = cfg.graph
         return GraphBackend(
@@ -79,6 +84,7 @@ def make_backend(
             calibration=calibration,
             sonar_timing=cfg.sonar.timing,
             factorization=g.factorization,
+            time_sigma=cfg.laser.time_sigma("per-scan"),
         )
     raise ValueError(f"unknown backend {name!r}; expected one of {BACKENDS}")
 

@@ -113,12 +113,13 @@ class SlamStep:
         self.k += 1
         lc.k = self.k
         if not self.started:
-            be.start(t, np.zeros(3) if pose0 is None else pose0, self._start_cov)
+            be.start(t, np.zeros(3) if pose0 is None else pose0, self._start_cov, twist=speed)
             self.started = True
         elif anchor is not None:
-            be.predict(t, None, anchor[1], origin=anchor[0])
+            be.predict(t, None, anchor[1], origin=anchor[0], twist=speed)
         else:
-            be.predict(t, pre, scan)
+            be.predict(t, pre, scan, twist=speed)
+        features = be.time_registered(features, speed)
         for keep, drop in self._pending_merges:
             keep, drop = lc.resolve(keep), lc.resolve(drop)
             if keep != drop:
