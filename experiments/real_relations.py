@@ -6,6 +6,7 @@ Run: python experiments/real_relations.py [--logs intel mit-csail freiburg-079 i
        [--backends ekf isam2 batch] [--max-scans N] [--calibration off|wheels]
        [--laser-calibration off|offset|range] [--line-end-trim K]
        [--corners with-lines|replace-lines|off] [--landmarks on|off]
+       [--time-registration per-feature|per-scan]
 Reads ``../shared/data/<log>`` with fgslam.io.readers (corrected logs: odometry rebuilt, the
 corrected poses as reference; mit-csail: a raw log), runs the front end in "laser" mode and
 the backends (iSAM2 and batch share one graph; the EKF alone), and scores the keyframe poses
@@ -24,7 +25,12 @@ from pathlib import Path
 import numpy as np
 from real_carmen import limited  # the same scan limit as the ATE experiment
 
-from fgslam.choices import CALIBRATION_CHOICES, CORNER_CHOICES, LASER_CALIBRATION_CHOICES
+from fgslam.choices import (
+    CALIBRATION_CHOICES,
+    CORNER_CHOICES,
+    LASER_CALIBRATION_CHOICES,
+    TIME_REGISTRATION_CHOICES,
+)
 from fgslam.config import with_options
 from fgslam.evaluation import dense
 from fgslam.evaluation import metrics as evaluation
@@ -117,6 +123,7 @@ def run(
     laser_calibration: str | None = None,
     line_end_trim: float | None = None,
     landmarks: bool | None = None,
+    time_registration: str | None = None,
 ) -> None:
     log_file, rel_file = FILES[name]
     path, rel = DATA / log_file, dense.read_relations(DATA / rel_file)
@@ -131,7 +138,7 @@ def run(
             {
                 "scanmatch": MODES[mode],
                 "odometry": {"calibration": calibration},
-                "laser": {"calibration": laser_calibration},
+                "laser": {"calibration": laser_calibration, "time_registration": time_registration},
                 "frontend": {"corners": corners, "line_end_trim": line_end_trim},
                 "map": {"landmarks": landmarks},
             },
@@ -218,6 +225,12 @@ def main() -> None:
         help="line and corner landmarks in the graph, or scan matching and loop closures "
         "alone (default: the configuration's, on)",
     )
+    ap.add_argument(
+        "--time-registration",
+        choices=TIME_REGISTRATION_CHOICES,
+        help="a scan's time error on each laser feature, or once per scan on the pose "
+        "(default: the configuration's)",
+    )
     args = ap.parse_args()
     print(
         "| log | estimate | relations trans (m): mean ± std (max) | rot (deg) | relations used "
@@ -238,6 +251,7 @@ def main() -> None:
                 laser_calibration=args.laser_calibration,
                 line_end_trim=args.line_end_trim,
                 landmarks=None if args.landmarks is None else args.landmarks == "on",
+                time_registration=args.time_registration,
             )
 
 
