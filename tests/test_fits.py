@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from factors.geometry import wrap_angle
+from factors.sensor_models import quantum_common_sigma
 from fgslam.frontend.fits import (
     RESIDUAL_TEST,
     FitRejected,
@@ -15,6 +16,7 @@ from fgslam.frontend.fits import (
     fit_corner,
     fit_line,
     line_ranges,
+    with_common_error,
 )
 
 PHI = np.radians(np.arange(-90, 90.01, 0.5))
@@ -63,6 +65,47 @@ def test_line_fit_monte_carlo_covariance():
         fit = fit_line(p, r0 + rng.normal(0, 0.02, p.size), 0.02, residual_test=None)
         trials.append((fit.params - [-0.5, 2.5], fit.cov_random))
     check_monte_carlo(trials, 0.1, (1.7, 2.3))
+
+
+def test_quantum_common_sigma_by_monte_carlo():
+    """The mean rounding error over the noise, b(x), as a function of where the true range
+    falls between quanta: its RMS over x against the formula (noise well below, near and
+    above half a quantum)."""
+    rng = np.random.default_rng(5)
+    q = 0.05
+    x = rng.uniform(0, q, 400)
+    for sigma_n in (0.005, 0.0138, 0.03):
+        n = rng.normal(0, sigma_n, (4000, 1))
+        b = (np.round((x + n) / q) * q - x).mean(axis=0)
+        se = 0.5 * sigma_n / math.sqrt(4000)  # sampling noise of each b(x), roughly
+        want = quantum_common_sigma(q, math.sqrt(sigma_n**2 + q * q / 12))
+        got = math.sqrt(max(np.mean(b**2) - se**2, 0.0))
+        assert got == pytest.approx(want, rel=0.05, abs=3e-4), (sigma_n, got, want)
+    assert quantum_common_sigma(0.01, 0.01) == 0.0  # a SICK LMS: the noise dithers it away
+
+
+def test_quantised_wall_head_on_covariance_by_monte_carlo():
+    """A wall faced head-on (its ranges within one quantum across the fit), ranges with noise
+    rounded to 5 cm (the PLS): the line's d carries the rounding every beam shares. With the
+    common term its covariance holds the errors; without, it is overconfident."""
+    rng = np.random.default_rng(2)
+    q, sigma = 0.05, 0.02  # sigma: the PLS's total random error, quantum included
+    sigma_n = math.sqrt(sigma**2 - q * q / 12)
+    p = PHI[np.abs(PHI) < math.radians(6)]
+    common = quantum_common_sigma(q, sigma)
+    with_term, without = [], []
+    for _ in range(600):
+        d = rng.uniform(2.0, 3.0)
+        r = np.round((line_ranges(0.0, d, p) + rng.normal(0, sigma_n, p.size)) / q) * q
+        fit = fit_line(p, r, sigma, sources=[np.ones(p.size), r])
+        e = fit.params - [0.0, d]
+        e[0] = wrap_angle(e[0])
+        with_term.append((e, with_common_error(fit, common).cov_random))
+        without.append((e, fit.cov_random))
+    nees = [np.mean([e @ np.linalg.solve(c, e) for e, c in t]) for t in (with_term, without)]
+    z2_d = [np.mean([e[1] ** 2 / c[1, 1] for e, c in t]) for t in (with_term, without)]
+    assert 1.7 < nees[0] < 2.3 and 0.85 < z2_d[0] < 1.15, (nees, z2_d)
+    assert z2_d[1] > 1.15, z2_d  # without: d overconfident (1.24)
 
 
 def test_line_systematic_term_bounds_a_constant_offset():

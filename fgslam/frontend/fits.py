@@ -16,6 +16,7 @@ front end counts in its per-scan statistics; nothing else escapes.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from collections.abc import Sequence
@@ -53,6 +54,20 @@ class Fit:
     scale: float = 1.0  # variance factor from the fit's own residual (residual_scale)
     # d params / d s for each unit range-error source s of ``sources`` (one column each)
     source_jacobian: NDArray[np.float64] | None = None
+
+
+def with_common_error(fit: Fit, sigma: float) -> Fit:
+    """``fit`` with a range error of RMS ``sigma`` (m) shared by all its beams (the range
+    quantum's, :func:`factors.sensor_models.quantum_common_sigma`) added to both its
+    covariances: sigma^2 j j^T, j its parameters' response to 1 m on every range (the first
+    column of :attr:`Fit.source_jacobian`: the fit's ``sources`` must start with the unit
+    offset). Unchanged without sources or for sigma 0."""
+    J = fit.source_jacobian
+    if not sigma or J is None:
+        return fit
+    j = J[:, 0]
+    add = sigma * sigma * np.outer(j, j)
+    return dataclasses.replace(fit, cov=fit.cov + add, cov_random=fit.cov_random + add)
 
 
 def _prepare(phi: ArrayLike, r: ArrayLike, min_points: int):

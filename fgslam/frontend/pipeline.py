@@ -36,12 +36,19 @@ from factors.sensor_models import (
     CORNER_ANGULAR,
     LINE_ANGULAR,
     SonarErrorModel,
+    quantum_common_sigma,
     time_registration_inflation,
 )
 from fgslam.config import FrontEndParams, RobotConfig, linked_from
 from fgslam.events import Event, LaserScan, OdometryEvent, SonarReading, scan_bearings
 from fgslam.frontend.features import SOURCES, End, Feature, OwnTime, ScanFeatures
-from fgslam.frontend.fits import FitRejected, corner_ranges, fit_corner, fit_line
+from fgslam.frontend.fits import (
+    FitRejected,
+    corner_ranges,
+    fit_corner,
+    fit_line,
+    with_common_error,
+)
 from fgslam.frontend.fusion import fuse, fused_jacobian
 from fgslam.frontend.segmentation import Segment, segment_scan
 from fgslam.frontend.sonar import (
@@ -101,6 +108,8 @@ class FrontEnd:
         self.mount = (m.x, m.y, math.radians(m.yaw_deg))
         self.half_slot = 0.5 * cfg.laser.scan_period
         self.mean_delay = 0.5 * (cfg.laser.delay_min + cfg.laser.delay_max)
+        # m: the range quantum's error that a fit's beams share (docs/design.md, 3.2)
+        self.quantum = quantum_common_sigma(cfg.laser.range_resolution, cfg.laser.sigma_range)
         self._echo_time = (0.0, 0.0, 0.0)  # (|v| m/s, |omega| rad/s, sigma_t s) of the scan
         self._next_sonar_step: float | None = None
         self._saw_laser = False
@@ -293,6 +302,7 @@ class FrontEnd:
         except FitRejected as exc:
             stats[f"lines_rejected_{exc.reason}"] += 1
             return None
+        fit = with_common_error(fit, self.quantum)
         if fit.scale > 1:  # the residual exceeds the range model: covariance scaled
             stats["lines_residual_scaled"] += 1
         stats["line_end_beams_trimmed"] += int(np.isfinite(rr).sum() - fit.used.sum())
@@ -412,6 +422,7 @@ class FrontEnd:
             except FitRejected as exc:
                 stats[f"corners_rejected_{exc.reason}"] += 1
                 continue
+            fit = with_common_error(fit, self.quantum)
             if fit.scale > 1:
                 stats["corners_residual_scaled"] += 1
             f = Feature(
