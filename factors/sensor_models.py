@@ -55,6 +55,16 @@ class LaserRangeModel:
         return self.systematic_offset + self.systematic_per_metre * np.asarray(ranges, float)
 
 
+def laser_feature_time_inflation(
+    covariance: ArrayLike, kind: str, speed: float, turn_rate: float, sigma_t: float
+) -> NDArray[np.float64]:
+    """:func:`time_registration_inflation` of a laser ``kind`` ("line": (alpha, d), "corner":
+    (phi_c, r_c, gamma)) measurement's covariance; speed m/s and turn rate rad/s of either
+    sign."""
+    angular = LINE_ANGULAR if kind == "line" else CORNER_ANGULAR
+    return time_registration_inflation(covariance, angular, abs(speed), abs(turn_rate), sigma_t)
+
+
 def quantum_common_sigma(resolution: float, sigma_range: float, harmonics: int = 64) -> float:
     """The part of a range quantum's error that beams at (nearly) one range share (m, RMS).
 

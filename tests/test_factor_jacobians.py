@@ -163,14 +163,22 @@ def corner_case(rng):
     return pose, mount, corner
 
 
+def corner_values(pose, corner, c=None) -> gtsam.Values:
+    """Values with the pose at key 0, the corner at 1 and, if given, calibration c at 9."""
+    values = gtsam.Values()
+    values.insert(0, gtsam.Pose2(*pose))
+    values.insert(1, gtsam.Pose2(*corner))
+    if c is not None:
+        values.insert(9, c)
+    return values
+
+
 def test_corner_factor_jacobians(rng):
     for _ in range(N_CONFIGS):
         pose, mount, corner = corner_case(rng)
         z, _, _ = predict_corner(pose, corner, mount)
         meas = z + rng.normal(0, [0.01, 0.01, 0.01])
-        values = gtsam.Values()
-        values.insert(0, gtsam.Pose2(*pose))
-        values.insert(1, gtsam.Pose2(*corner))
+        values = corner_values(pose, corner)
         check_factor(corner_factor(0, 1, meas, UNIT3, mount), values)
         check_factor(corner_bearing_range_factor(0, 1, meas[:2], UNIT2, mount), values)
 
@@ -243,10 +251,7 @@ def test_calibrated_factors_read_the_measurement_moved_by_the_calibration(rng):
         z, _, _ = predict_corner(pose, corner, mount)
         meas = z + rng.normal(0, [0.01, 0.01, 0.01])
         J = rng.normal(size=(3, 5))
-        values = gtsam.Values()
-        values.insert(0, gtsam.Pose2(*pose))
-        values.insert(1, gtsam.Pose2(*corner))
-        values.insert(9, c)
+        values = corner_values(pose, corner, c)
         for dim, make in ((3, corner_factor), (2, corner_bearing_range_factor)):
             unit = UNIT3 if dim == 3 else UNIT2
             f = make(0, 1, meas[:dim], unit, mount, cal_key=9, cal_jacobian=J[:dim])
@@ -292,9 +297,6 @@ def test_scale_columns_are_taken_at_the_prediction(rng):
     z, _, _ = predict_corner(pose, corner, mount)
     meas = z + rng.normal(0, [0.01, 0.01, 0.01])
     J = rng.normal(size=(3, 2))
-    values = gtsam.Values()
-    values.insert(0, gtsam.Pose2(*pose))
-    values.insert(1, gtsam.Pose2(*corner))
-    values.insert(9, np.array([0.003, 0.02]))
+    values = corner_values(pose, corner, np.array([0.003, 0.02]))
     check_factor(corner_factor(0, 1, meas, UNIT3, mount, 9, J, scale_gain(J, meas, [1])), values)
     assert scale_gain(J, meas, []) is None and scale_gain(J, [0.1, -1.0, 0.0], [1]) is None

@@ -18,7 +18,7 @@ from factors.odometry import (
     time_registration_jacobians,
     with_time_registration,
 )
-from fgslam.config import load_config, with_options
+from fgslam.config import load_config, with_options, with_scanmatch
 from fgslam.evaluation import metrics as evaluation
 from fgslam.frontend.pipeline import FrontEnd
 from fgslam.frontend.sonar import PoseHistory
@@ -130,8 +130,6 @@ def late_scans():
 def test_per_scan_graph_poses_are_the_robots_at_the_scans_true_times(late_scans):
     evs, cfg = late_scans
     cfg = with_options(cfg, {"laser": {"time_registration": "per-scan"}})
-    from fgslam.config import with_scanmatch
-
     (res,) = run_backends(evs, with_scanmatch(cfg, PAPER), ["isam2"], "fused")
     true_t = np.array([true_scan_time(cfg, t) for t in res.times])
     at_true = evaluation.interpolate_poses(res.truth_t, res.truth, true_t)

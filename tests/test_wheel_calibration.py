@@ -79,16 +79,21 @@ def test_calibration_jacobian_of_a_straight_line_and_a_turn_on_the_spot():
     assert np.abs(J[:2, 0]).max() > 0.05
 
 
+def _link_case(rng):
+    """A random wheel motion and two world poses about that far apart (x, y, theta)."""
+    pre = preintegrate(*random_samples(rng), PARAMS)
+    pi = np.array([rng.uniform(-9, 9), rng.uniform(-9, 9), rng.uniform(-math.pi, math.pi)])
+    rel = np.array([pre.delta.x(), pre.delta.y(), pre.delta.theta()]) + rng.normal(0, 0.05, 3)
+    pj = gtsam.Pose2(*pi).compose(gtsam.Pose2(*rel))
+    return pre, pi, np.array([pj.x(), pj.y(), pj.theta()])
+
+
 @pytest.mark.parametrize("seed", range(30))
 def test_calibrated_error_jacobians(seed):
     """The error's Jacobians w.r.t. both poses' body tangents and the calibration errors,
     directly and through the GTSAM factor (whitening undone)."""
     rng = np.random.default_rng(100 + seed)
-    pre = preintegrate(*random_samples(rng), PARAMS)
-    pi = np.array([rng.uniform(-9, 9), rng.uniform(-9, 9), rng.uniform(-math.pi, math.pi)])
-    rel = np.array([pre.delta.x(), pre.delta.y(), pre.delta.theta()]) + rng.normal(0, 0.05, 3)
-    pj = gtsam.Pose2(*pi).compose(gtsam.Pose2(*rel))
-    pj = np.array([pj.x(), pj.y(), pj.theta()])
+    pre, pi, pj = _link_case(rng)
     c = rng.normal(0, 0.01, 3)
     e, Hi, Hj, Hc = calibrated_error(pi, pj, c, pre)
     # in the wheels' units: of the position, pose j in pose i's frame minus the calibrated
@@ -304,11 +309,7 @@ def test_a_world_scaled_with_the_wheels_leaves_the_odometry_error_as_it_is(seed)
     motion: the error (in the wheels' units) is the unscaled one's to second order (within
     2 % of the difference the poses' units gave, the noise shrunk with the world)."""
     rng = np.random.default_rng(200 + seed)
-    pre = preintegrate(*random_samples(rng), PARAMS)
-    pi = np.array([rng.uniform(-9, 9), rng.uniform(-9, 9), rng.uniform(-math.pi, math.pi)])
-    rel = np.array([pre.delta.x(), pre.delta.y(), pre.delta.theta()]) + rng.normal(0, 0.05, 3)
-    pj = gtsam.Pose2(*pi).compose(gtsam.Pose2(*rel))
-    pj = np.array([pj.x(), pj.y(), pj.theta()])
+    pre, pi, pj = _link_case(rng)
     s = 2e-3
     scale = np.array([1 + s, 1 + s, 1.0])
     e0 = calibrated_error(pi, pj, np.zeros(3), pre)[0]

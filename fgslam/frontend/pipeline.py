@@ -33,9 +33,9 @@ from factors.point import (
     predict_point,
 )
 from factors.sensor_models import (
-    CORNER_ANGULAR,
     LINE_ANGULAR,
     SonarErrorModel,
+    laser_feature_time_inflation,
     quantum_common_sigma,
     time_registration_inflation,
 )
@@ -214,12 +214,8 @@ class FrontEnd:
                 for k in used:
                     lines[k] = None
             for f in [f for f in lines if f is not None] + [c for _, c in corners]:
-                f.cov = time_registration_inflation(
-                    f.cov,
-                    LINE_ANGULAR if f.kind == "line" else CORNER_ANGULAR,
-                    v,
-                    w,
-                    self.cfg.laser.time_sigma("per-feature"),
+                f.cov = laser_feature_time_inflation(
+                    f.cov, f.kind, v, w, self.cfg.laser.time_sigma("per-feature")
                 )
                 feats.append(f)
         if use_sonar and pts is not None:

@@ -9,7 +9,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from factors.odometry import Preintegrated
-from factors.sensor_models import CORNER_ANGULAR, LINE_ANGULAR, time_registration_inflation
+from factors.sensor_models import laser_feature_time_inflation
 from fgslam.frontend.features import Feature
 from fgslam.slam.calibration import Calibration
 
@@ -72,9 +72,8 @@ class Backend(ABC):
         out = []
         for f in features:
             if f.source in ("laser", "fused") and f.kind in ("line", "corner"):
-                angular = LINE_ANGULAR if f.kind == "line" else CORNER_ANGULAR
-                cov = time_registration_inflation(
-                    f.cov, angular, abs(twist[0]), abs(twist[1]), self.time_sigma
+                cov = laser_feature_time_inflation(
+                    f.cov, f.kind, twist[0], twist[1], self.time_sigma
                 )
                 f = dataclasses.replace(f, cov=cov)
             out.append(f)
