@@ -210,7 +210,7 @@ def main() -> None:
     ap.add_argument(
         "--line-end-trim",
         type=float,
-        help="line fits leave out end beams beyond this many robust sigmas (default: the "
+        help="line fits leave out end beams beyond this many robust range sigmas (default: the "
         "configuration's, 0: off)",
     )
     ap.add_argument(

@@ -159,6 +159,11 @@ def _tls_of_moments(mx: float, my: float, sxx: float, syy: float, sxy: float):
     return normalize_line(alpha, d)
 
 
+# the most beams line-end trimming leaves out at either end: the segmentation gives the beams
+# next to a vertex to the segment scanned first, one or two of them
+TRIM_MAX_BEAMS = 2
+
+
 def fit_line(
     phi: ArrayLike,
     r: ArrayLike,
@@ -175,10 +180,11 @@ def fit_line(
     ``sources``: unit range-error sources (m per unit, e.g. 1 for an offset and r for a
     scale), each a scalar or one per beam, whose Jacobians the fit returns
     (:attr:`Fit.source_jacobian`). ``trim_ends``: beams at either end of the segment whose
-    perpendicular distance to the fitted line exceeds this many times the line's robust
-    spread (1.4826 MAD, at least 1 mm) are left out and the line refitted once (the
-    segmentation bounds the perpendicular distance, so a line may end with a grazing beam of
-    the next wall, its range tens of cm off: ``Fit.used`` marks the beams kept).
+    range residual to the fitted line exceeds this many times the residuals' robust spread
+    (1.4826 MAD, at least 1 mm) are left out and the line refitted, then judged once more
+    against the refitted line (the segmentation bounds the perpendicular distance, so a line
+    may end with a grazing beam of the next wall, its range tens of cm off, which a range fit
+    weighs by its range: ``Fit.used`` marks the beams kept).
     ``residual_test``: a chi-square level (e.g. :data:`RESIDUAL_TEST`), see
     :func:`residual_scale` (a wall that is not planar, or noisier than ``sigma_r``, gets the
     covariance of its own residual); None (default): the range model alone.
@@ -188,24 +194,32 @@ def fit_line(
     fit = _fit_line_once(phi, r, ok, sigma_r, systematic, max_iter, residual_test, sources)
     if trim_ends is None:
         return fit
-    a, d = fit.params
-    # the first and last beam (among ok) whose perpendicular residual is within the bound;
-    # the numpy reference: _trim_bounds_numpy
-    lo, hi, inside, n_ok = kernels.trim_bounds(phi, r, ok, float(a), float(d), float(trim_ends))
-    if inside < 3 or (lo == 0 and hi == n_ok - 1):
-        return fit
+    # the first and last beam (among ok) whose range residual is within the bound (the
+    # numpy reference: _trim_bounds_numpy), judged again against the refitted line, which
+    # the end beams no longer pull (grazing beams of the wall itself come back)
     idx = np.flatnonzero(ok)
-    ok = ok.copy()
-    ok[idx[:lo]] = False
-    ok[idx[hi + 1 :]] = False
-    return _fit_line_once(phi, r, ok, sigma_r, systematic, max_iter, residual_test, sources)
+    kept = (0, idx.size - 1)
+    for _ in range(2):
+        a, d = fit.params
+        lo, hi, inside, n = kernels.trim_bounds(phi, r, ok, float(a), float(d), float(trim_ends))
+        lo, hi = min(lo, TRIM_MAX_BEAMS), max(hi, n - 1 - TRIM_MAX_BEAMS)
+        if inside < 3 or (lo, hi) == kept:
+            break
+        kept = (lo, hi)
+        use = np.zeros_like(ok)
+        use[idx[lo : hi + 1]] = True
+        fit = _fit_line_once(phi, r, use, sigma_r, systematic, max_iter, residual_test, sources)
+    return fit
 
 
 def _trim_bounds_numpy(phi, r, ok, a, d, trim_ends) -> tuple[int, int, int, int]:
     """The reference of :func:`fgslam.frontend.kernels.trim_bounds`."""
     idx = np.flatnonzero(ok)
-    e = r[idx] * np.cos(a - phi[idx]) - d  # perpendicular residuals, m
+    c = np.cos(a - phi[idx])
+    with np.errstate(divide="ignore"):
+        e = np.where(c > 0.0, r[idx] - d / np.where(c > 0.0, c, 1.0), np.inf)  # range residuals, m
     spread = 1.4826 * float(np.median(np.abs(e - np.median(e))))
+    spread = spread if math.isfinite(spread) else 0.0
     inside = np.flatnonzero(np.abs(e) <= trim_ends * max(spread, 1e-3))
     if inside.size == 0:
         return -1, -1, 0, idx.size

@@ -32,7 +32,7 @@ same fits are refused. Non-finite values or a LAPACK failure hand the fit back t
 reference.
 
 :func:`trim_bounds`: the end trimming of :func:`fgslam.frontend.fits.fit_line`: the
-perpendicular residuals of the kept beams to the fitted line, their robust spread
+range residuals of the kept beams to the fitted line, their robust spread
 (1.4826 MAD) and the first and last beam within the bound. The same operations as numpy's
 elementwise ones and exact medians: the same beams kept.
 """
@@ -359,10 +359,11 @@ def line_fit(phi, r, ok, alpha, d, max_iter, S, E):
 
 @numba.njit(cache=True, nogil=True)
 def trim_bounds(phi, r, ok, a, d, trim):  # pragma: no cover - compiled
-    """Of the beams ``ok`` (in order), those whose perpendicular residual
-    ``r cos(a - phi) - d`` is within ``trim`` times the residuals' spread ``1.4826 MAD`` (at
-    least 1 mm): the first and last of them (positions among the beams ``ok``; -1 when none
-    is), how many they are, and how many beams ``ok`` has."""
+    """Of the beams ``ok`` (in order), those whose range residual
+    ``r - d / cos(a - phi)`` is within ``trim`` times the residuals' spread ``1.4826 MAD`` (at
+    least 1 mm; a beam at or beyond grazing, cos <= 0, is outside): the first and last of
+    them (positions among the beams ``ok``; -1 when none is), how many they are, and how
+    many beams ``ok`` has."""
     n = 0
     for i in range(phi.shape[0]):
         if ok[i]:
@@ -371,10 +372,13 @@ def trim_bounds(phi, r, ok, a, d, trim):  # pragma: no cover - compiled
     m = 0
     for i in range(phi.shape[0]):
         if ok[i]:
-            e[m] = r[i] * math.cos(a - phi[i]) - d
+            c = math.cos(a - phi[i])
+            e[m] = r[i] - d / c if c > 0.0 else math.inf
             m += 1
     med = np.median(e)
     spread = 1.4826 * np.median(np.abs(e - med))
+    if not math.isfinite(spread):
+        spread = 0.0
     bound = trim * _pymax(spread, 1e-3)
     lo = hi = -1
     inside = 0
